@@ -1,0 +1,32 @@
+# The README's two set-up commands: `make demo` and `make test`. Each creates .venv if missing and
+# installs the pinned dependency set and the project into it.
+PY ?= python3
+VENV := .venv
+VPY := $(VENV)/bin/python
+STAMP := $(VENV)/.installed-$(shell cat requirements.txt setup.py setup.cfg | cksum | cut -d' ' -f1)
+DEMO_OUT ?= out/demo
+PYTEST_ARGS ?=
+
+.PHONY: install demo test test-slow bench clean
+
+$(STAMP): requirements.txt setup.py setup.cfg
+	test -x $(VPY) || $(PY) -m venv $(VENV)
+	$(VPY) -m pip install -q --upgrade pip
+	$(VPY) -m pip install -q -r requirements.txt
+	$(VPY) -m pip install -q --no-deps --no-build-isolation -e .
+	rm -f $(VENV)/.installed-*
+	touch $(STAMP)
+
+install: $(STAMP)
+
+demo: $(STAMP)
+	$(VENV)/bin/vings demo --out $(DEMO_OUT)
+
+test: $(STAMP)
+	$(VPY) -m pytest -q $(PYTEST_ARGS)
+
+test-slow: $(STAMP)
+	$(VPY) -m pytest -q -m slow $(PYTEST_ARGS)
+
+clean:
+	rm -rf out build *.egg-info

@@ -1,0 +1,32 @@
+"""VINGS-ROS: installable both as a pip package and as an ament_python ROS 2 package."""
+from glob import glob
+
+from setuptools import find_packages, setup
+
+PACKAGE = "vings_ros"
+
+setup(
+    name=PACKAGE,
+    version="0.1.0",
+    packages=find_packages(include=["vings_core", "vings_core.*", "vings_ros", "vings_ros.*",
+                                    "msg_adapters", "msg_adapters.*"]),
+    package_data={"vings_ros": ["config/*.xml"]},
+    data_files=[
+        ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE}"]),
+        (f"share/{PACKAGE}", ["package.xml"]),
+        (f"share/{PACKAGE}/params", glob("params/*.yaml")),
+    ],
+    python_requires=">=3.10",
+    install_requires=[],  # pinned set in requirements.txt (see README); ROS deps come from package.xml
+    zip_safe=False,
+    maintainer="VINGS-ROS developers",
+    maintainer_email="vings-ros@example.org",
+    description="Monocular visual-inertial 2D Gaussian-splatting SLAM as a ROS 2 node graph",
+    license="Apache-2.0",
+    tests_require=["pytest"],
+    entry_points={
+        "console_scripts": [
+            "vings = vings_ros.cli:main",
+        ],
+    },
+)

@@ -1,0 +1,146 @@
+"""Stage configuration: one dataclass per stage, loaded from ROS-format params YAML.
+
+A params file is what ``--ros-args --params-file`` reads::
+
+    frontend_node:            # node name (or /** for every node)
+      ros__parameters:
+        frontend:             # stage section
+          keyframe_flow_px: 2.4
+
+``vings run --params FILE`` reads the same file: :func:`load_section` merges the ``/**`` block and
+every node block, then picks one stage section. Unknown keys and values of the wrong type raise a
+:class:`ConfigError` naming the file and key.
+"""
+from __future__ import annotations
+
+import dataclasses
+import os
+import typing
+from pathlib import Path
+from typing import Any, Type, TypeVar
+
+import yaml
+
+from .errors import ConfigError
+
+C = TypeVar("C")
+
+
+def read_params_file(path: str | os.PathLike) -> dict:
+    """Merged ``ros__parameters`` of every node block of a ROS 2 params YAML (``/**`` first)."""
+    path = Path(path)
+    if not path.is_file():
+        raise ConfigError(f"{path}: params file not found")
+    try:
+        doc = yaml.safe_load(path.read_text()) or {}
+    except yaml.YAMLError as e:
+        raise ConfigError(f"{path}: not valid YAML: {e}") from None
+    if not isinstance(doc, dict):
+        raise ConfigError(f"{path}: top level must be a mapping of node names")
+    merged: dict = {}
+    keys = sorted(doc, key=lambda k: k != "/**")
+    for node in keys:
+        block = doc[node]
+        if not isinstance(block, dict) or "ros__parameters" not in block:
+            raise ConfigError(f"{path}: node block {node!r} has no 'ros__parameters' mapping")
+        _deep_merge(merged, block["ros__parameters"] or {})
+    return merged
+
+
+def _deep_merge(dst: dict, src: dict) -> None:
+    for k, v in src.items():
+        if isinstance(v, dict) and isinstance(dst.get(k), dict):
+            _deep_merge(dst[k], v)
+        else:
+            dst[k] = v
+
+
+def flatten(d: dict, prefix: str = "") -> dict:
+    """``{'a': {'b': 1}} -> {'a.b': 1}`` (ROS parameter names use dots)."""
+    out = {}
+    for k, v in d.items():
+        name = f"{prefix}{k}"
+        if isinstance(v, dict):
+            out.update(flatten(v, name + "."))
+        else:
+            out[name] = v
+    return out
+
+
+def config_from_dict(cls: Type[C], values: dict, where: str = "params") -> C:
+    """Build dataclass ``cls`` from ``values`` with type checks; unknown keys are errors."""
+    if not dataclasses.is_dataclass(cls):
+        raise TypeError(f"{cls} is not a dataclass")
+    hints = typing.get_type_hints(cls)
+    fields = {f.name: f for f in dataclasses.fields(cls)}
+    kwargs: dict[str, Any] = {}
+    for key, val in (values or {}).items():
+        if key not in fields:
+            raise ConfigError(f"{where}: unknown parameter {key!r}; known: {', '.join(sorted(fields))}")
+        kwargs[key] = _coerce(hints[key], val, f"{where}.{key}")
+    try:
+        obj = cls(**kwargs)
+    except (TypeError, ValueError) as e:
+        raise ConfigError(f"{where}: {e}") from None
+    validate = getattr(obj, "validate", None)
+    if callable(validate):
+        try:
+            validate()
+        except ValueError as e:
+            raise ConfigError(f"{where}: {e}") from None
+    return obj
+
+
+def _coerce(tp: Any, val: Any, where: str) -> Any:
+    origin = typing.get_origin(tp)
+    args = typing.get_args(tp)
+    if origin is typing.Union:
+        if val is None and type(None) in args:
+            return None
+        inner = [a for a in args if a is not type(None)]
+        return _coerce(inner[0], val, where)
+    if tp is bool:
+        if isinstance(val, bool):
+            return val
+        raise ConfigError(f"{where}: expected true/false, got {val!r}")
+    if tp is int:
+        if isinstance(val, int) and not isinstance(val, bool):
+            return val
+        raise ConfigError(f"{where}: expected an integer, got {val!r}")
+    if tp is float:
+        if isinstance(val, (int, float)) and not isinstance(val, bool):
+            return float(val)
+        raise ConfigError(f"{where}: expected a number, got {val!r}")
+    if tp is str:
+        if isinstance(val, str):
+            return val
+        raise ConfigError(f"{where}: expected a string, got {val!r}")
+    if origin in (list, tuple):
+        if not isinstance(val, (list, tuple)):
+            raise ConfigError(f"{where}: expected a list, got {val!r}")
+        el = args[0] if args else Any
+        items = [_coerce(el, v, f"{where}[{i}]") if el is not Any and el is not Ellipsis else v
+                 for i, v in enumerate(val)]
+        return tuple(items) if origin is tuple else items
+    return val
+
+
+def load_section(cls: Type[C], section: str, params_file: str | os.PathLike | None = None,
+                 overrides: dict | None = None) -> C:
+    """Config dataclass ``cls`` from section ``section`` of ``params_file`` (defaults if None)."""
+    values: dict = {}
+    where = section
+    if params_file is not None:
+        merged = read_params_file(params_file)
+        sec = merged.get(section, {})
+        if not isinstance(sec, dict):
+            raise ConfigError(f"{params_file}: section {section!r} must be a mapping")
+        values.update(sec)
+        where = f"{params_file}: {section}"
+    if overrides:
+        values.update(overrides)
+    return config_from_dict(cls, values, where)
+
+
+def config_to_dict(cfg: Any) -> dict:
+    return dataclasses.asdict(cfg)

@@ -1,0 +1,180 @@
+"""Rigid-body math shared by all stages (pure functions, torch batched and numpy).
+
+Conventions:
+* ``T_ab`` (4x4) maps points in frame ``b`` to frame ``a``.
+* se(3) tangent vectors are ordered ``xi = [rho, phi]``: translation part (m) first, rotation (rad)
+  second, as in Sophus/lietorch. (GTSAM's Pose3 orders ``[phi, rho]``; convert explicitly.)
+* ``se3_exp(xi)`` gives the 4x4 matrix ``exp(xi^)``; pose updates are left-multiplied:
+  ``T <- se3_exp(xi) @ T`` unless a function says otherwise.
+* Quaternions are ``(x, y, z, w)`` (TUM/ROS order) unless the name says ``wxyz``.
+"""
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+
+# --------------------------------------------------------------------------------------- torch
+
+
+def skew(v: torch.Tensor) -> torch.Tensor:
+    """``(..., 3) -> (..., 3, 3)`` cross-product matrix ``[v]_x``."""
+    z = torch.zeros_like(v[..., 0])
+    x, y, w = v[..., 0], v[..., 1], v[..., 2]
+    return torch.stack([torch.stack([z, -w, y], -1),
+                        torch.stack([w, z, -x], -1),
+                        torch.stack([-y, x, z], -1)], -2)
+
+
+def _so3_coeffs(theta2: torch.Tensor):
+    """A = sin(t)/t, B = (1-cos t)/t^2, C = (t - sin t)/t^3 with Taylor series near 0."""
+    theta = torch.sqrt(theta2.clamp_min(0))
+    small = theta2 < 1e-8
+    ts = torch.where(small, torch.ones_like(theta), theta)
+    A = torch.where(small, 1 - theta2 / 6, torch.sin(ts) / ts)
+    B = torch.where(small, 0.5 - theta2 / 24, (1 - torch.cos(ts)) / ts**2)
+    C = torch.where(small, 1.0 / 6 - theta2 / 120, (ts - torch.sin(ts)) / ts**3)
+    return A, B, C
+
+
+def so3_exp(phi: torch.Tensor) -> torch.Tensor:
+    """Rodrigues: ``(..., 3)`` axis-angle (rad) -> ``(..., 3, 3)`` rotation."""
+    A, B, _ = _so3_coeffs((phi * phi).sum(-1))
+    K = skew(phi)
+    eye = torch.eye(3, dtype=phi.dtype, device=phi.device).expand(K.shape)
+    return eye + A[..., None, None] * K + B[..., None, None] * (K @ K)
+
+
+def so3_log(R: torch.Tensor) -> torch.Tensor:
+    """``(..., 3, 3)`` rotation -> ``(..., 3)`` axis-angle, accurate near 0 and near pi."""
+    q = rotmat_to_quat(R)  # xyzw, w >= 0
+    v, w = q[..., :3], q[..., 3]
+    n = torch.linalg.norm(v, dim=-1)
+    small = n < 1e-8
+    ns = torch.where(small, torch.ones_like(n), n)
+    ang = 2 * torch.atan2(n, w)
+    scale = torch.where(small, 2.0 / w.clamp_min(1e-12) * (1 - n**2 / (3 * w.clamp_min(1e-12) ** 2)),
+                        ang / ns)
+    return v * scale[..., None]
+
+
+def so3_left_jacobian(phi: torch.Tensor) -> torch.Tensor:
+    """Left Jacobian ``J_l(phi)`` of SO(3), ``(..., 3) -> (..., 3, 3)``."""
+    _, B, C = _so3_coeffs((phi * phi).sum(-1))
+    K = skew(phi)
+    eye = torch.eye(3, dtype=phi.dtype, device=phi.device).expand(K.shape)
+    return eye + B[..., None, None] * K + C[..., None, None] * (K @ K)
+
+
+def se3_exp(xi: torch.Tensor) -> torch.Tensor:
+    """``(..., 6)`` tangent ``[rho, phi]`` -> ``(..., 4, 4)`` rigid transform."""
+    rho, phi = xi[..., :3], xi[..., 3:]
+    R = so3_exp(phi)
+    t = (so3_left_jacobian(phi) @ rho[..., None])[..., 0]
+    T = torch.zeros(xi.shape[:-1] + (4, 4), dtype=xi.dtype, device=xi.device)
+    T[..., :3, :3] = R
+    T[..., :3, 3] = t
+    T[..., 3, 3] = 1
+    return T
+
+
+def se3_log(T: torch.Tensor) -> torch.Tensor:
+    """``(..., 4, 4)`` rigid transform -> ``(..., 6)`` tangent ``[rho, phi]``."""
+    phi = so3_log(T[..., :3, :3])
+    J = so3_left_jacobian(phi)
+    rho = torch.linalg.solve(J, T[..., :3, 3:4])[..., 0]
+    return torch.cat([rho, phi], -1)
+
+
+def pose_inverse(T: torch.Tensor) -> torch.Tensor:
+    """Inverse of ``(..., 4, 4)`` rigid transforms."""
+    R, t = T[..., :3, :3], T[..., :3, 3:4]
+    Ti = torch.zeros_like(T)
+    Rt = R.transpose(-1, -2)
+    Ti[..., :3, :3] = Rt
+    Ti[..., :3, 3:4] = -Rt @ t
+    Ti[..., 3, 3] = 1
+    return Ti
+
+
+def transform_points(T: torch.Tensor, p: torch.Tensor) -> torch.Tensor:
+    """Apply ``(4, 4)`` (or broadcastable ``(..., 4, 4)``) ``T`` to points ``(..., 3)``."""
+    return (p[..., None, :] @ T[..., :3, :3].transpose(-1, -2))[..., 0, :] + T[..., :3, 3]
+
+
+def rotmat_to_quat(R: torch.Tensor) -> torch.Tensor:
+    """``(..., 3, 3)`` -> unit quaternion ``(..., 4)`` in ``(x, y, z, w)`` order with ``w >= 0``."""
+    m00, m11, m22 = R[..., 0, 0], R[..., 1, 1], R[..., 2, 2]
+    tr = m00 + m11 + m22
+    cands = torch.stack([
+        torch.stack([R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0],
+                     R[..., 1, 0] - R[..., 0, 1], 1 + tr], -1),
+        torch.stack([1 + m00 - m11 - m22, R[..., 0, 1] + R[..., 1, 0],
+                     R[..., 0, 2] + R[..., 2, 0], R[..., 2, 1] - R[..., 1, 2]], -1),
+        torch.stack([R[..., 0, 1] + R[..., 1, 0], 1 - m00 + m11 - m22,
+                     R[..., 1, 2] + R[..., 2, 1], R[..., 0, 2] - R[..., 2, 0]], -1),
+        torch.stack([R[..., 0, 2] + R[..., 2, 0], R[..., 1, 2] + R[..., 2, 1],
+                     1 - m00 - m11 + m22, R[..., 1, 0] - R[..., 0, 1]], -1),
+    ], -2)  # (..., 4, 4): each row proportional to q, pick the best-conditioned
+    diag = torch.stack([1 + tr, 1 + m00 - m11 - m22, 1 - m00 + m11 - m22, 1 - m00 - m11 + m22], -1)
+    idx = diag.argmax(-1)
+    q = torch.gather(cands, -2, idx[..., None, None].expand(idx.shape + (1, 4)))[..., 0, :]
+    q = q / torch.linalg.norm(q, dim=-1, keepdim=True)
+    return torch.where(q[..., 3:4] < 0, -q, q)
+
+
+def quat_to_rotmat(q: torch.Tensor) -> torch.Tensor:
+    """Quaternion ``(..., 4)`` ``(x, y, z, w)`` (normalised here) -> ``(..., 3, 3)``."""
+    q = q / torch.linalg.norm(q, dim=-1, keepdim=True)
+    x, y, z, w = q.unbind(-1)
+    return torch.stack([
+        torch.stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)], -1),
+        torch.stack([2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)], -1),
+        torch.stack([2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], -1),
+    ], -2)
+
+
+# --------------------------------------------------------------------------------------- numpy
+
+
+def np_pose(R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """4x4 float64 transform from rotation (3, 3) and translation (3,)."""
+    T = np.eye(4)
+    T[:3, :3] = R
+    T[:3, 3] = np.asarray(t).reshape(3)
+    return T
+
+
+def np_pose_inverse(T: np.ndarray) -> np.ndarray:
+    """Inverse of (..., 4, 4) rigid transforms (numpy)."""
+    return pose_inverse(torch.as_tensor(np.asarray(T, dtype=np.float64))).numpy()
+
+
+def np_quat_to_rotmat(q_xyzw: np.ndarray) -> np.ndarray:
+    return quat_to_rotmat(torch.as_tensor(np.asarray(q_xyzw, dtype=np.float64))).numpy()
+
+
+def np_rotmat_to_quat(R: np.ndarray) -> np.ndarray:
+    return rotmat_to_quat(torch.as_tensor(np.asarray(R, dtype=np.float64))).numpy()
+
+
+def np_so3_exp(phi: np.ndarray) -> np.ndarray:
+    return so3_exp(torch.as_tensor(np.asarray(phi, dtype=np.float64))).numpy()
+
+
+def np_so3_log(R: np.ndarray) -> np.ndarray:
+    return so3_log(torch.as_tensor(np.asarray(R, dtype=np.float64))).numpy()
+
+
+def np_se3_exp(xi: np.ndarray) -> np.ndarray:
+    return se3_exp(torch.as_tensor(np.asarray(xi, dtype=np.float64))).numpy()
+
+
+def np_se3_log(T: np.ndarray) -> np.ndarray:
+    return se3_log(torch.as_tensor(np.asarray(T, dtype=np.float64))).numpy()
+
+
+def rotation_angle_deg(R: np.ndarray) -> np.ndarray:
+    """Rotation angle (degrees) of (..., 3, 3) rotations."""
+    c = (np.trace(R, axis1=-2, axis2=-1) - 1) / 2
+    return np.degrees(np.arccos(np.clip(c, -1.0, 1.0)))

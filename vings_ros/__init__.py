@@ -1,0 +1,1 @@
+"""vings_ros: ROS 2 nodes, the `vings` command line, replay and launcher."""

@@ -1,0 +1,1 @@
+"""Subcommands of the `vings` CLI: one module each, exposing ``register(subparsers)``."""
