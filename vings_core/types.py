@@ -51,6 +51,13 @@ class CameraModel:
         if not (self.fx > 0 and self.fy > 0):
             raise ValueError(f"focal lengths must be positive, got fx={self.fx}, fy={self.fy}")
 
+    def __eq__(self, other: object) -> bool:
+        if not isinstance(other, CameraModel):
+            return NotImplemented
+        return (self.width, self.height, self.fx, self.fy, self.cx, self.cy, self.distortion_model) == \
+            (other.width, other.height, other.fx, other.fy, other.cx, other.cy, other.distortion_model) \
+            and np.array_equal(self.distortion, other.distortion)
+
     @property
     def K(self) -> np.ndarray:
         """3x3 intrinsic matrix (float64)."""
