@@ -1,0 +1,103 @@
+"""The output contract of a SLAM run (vings_core.eval.output)."""
+from __future__ import annotations
+
+import json
+
+import cv2
+import numpy as np
+import pytest
+import torch
+
+from vings_core.errors import InputError
+from vings_core.eval.output import (METRIC_KEYS, RunOutput, metrics_template, peak_rss_mb,
+                                    validate_metrics)
+from vings_core.trajectory_io import read_tum
+from vings_core.types import Trajectory
+
+CONTRACT_KEYS = ["frames", "frames_tracked", "keyframes", "wall_s", "fps", "ate_sim3_m", "ate_se3_m",
+                 "sim3_scale", "rpe", "psnr_keyframes_db", "psnr_novel_db", "ssim_keyframes",
+                 "num_gaussians", "peak_rss_mb"]
+
+
+def test_metric_keys_are_the_contract():
+    assert list(METRIC_KEYS) == CONTRACT_KEYS
+    t = metrics_template()
+    assert list(t) == CONTRACT_KEYS and all(v is None for v in t.values())
+
+
+def test_write_metrics_fills_validates_and_is_json(tmp_path):
+    out = RunOutput(tmp_path / "run")
+    written = out.write_metrics({"frames": np.int64(100), "fps": np.float32(12.5), "wall_s": 8,
+                                 "rpe": {"lengths_m": [5.0], "trans_pct": 1.2},
+                                 "psnr_keyframes_db": float("inf")})
+    d = json.loads(out.metrics_path.read_text())
+    assert list(d) == CONTRACT_KEYS and d == written
+    assert d["frames"] == 100 and d["fps"] == 12.5 and d["rpe"]["trans_pct"] == 1.2
+    assert d["psnr_keyframes_db"] is None  # non-finite -> null
+    assert d["keyframes"] is None and d["ate_sim3_m"] is None
+    with pytest.raises(ValueError, match="unknown metrics key.*'ate'"):
+        out.write_metrics({"ate": 1.0})
+    with pytest.raises(ValueError, match="'rpe' must be a dict"):
+        out.write_metrics({"rpe": 3.0})
+    with pytest.raises(ValueError, match="'frames' must be an integer"):
+        out.write_metrics({"frames": 2.5})
+    with pytest.raises(ValueError, match="'fps' must be a number"):
+        out.write_metrics({"fps": "fast"})
+    # failed writes left the old file intact and no temp files behind
+    assert json.loads(out.metrics_path.read_text()) == written
+    assert sorted(p.name for p in out.out_dir.iterdir()) == ["metrics.json"]
+
+
+def test_update_metrics_merges(tmp_path):
+    out = RunOutput(tmp_path)
+    out.write_metrics({"frames": 10, "wall_s": 2.0})
+    m = out.update_metrics({"ate_sim3_m": 0.1, "sim3_scale": 1.01})
+    assert m["frames"] == 10 and m["ate_sim3_m"] == 0.1
+    assert out.read_metrics() == m
+    assert validate_metrics({}) == metrics_template()
+
+
+def test_trajectories_and_renders(tmp_path):
+    out = RunOutput(tmp_path / "o")
+    P = np.tile(np.eye(4), (3, 1, 1))
+    P[:, 0, 3] = [0.0, 1.0, 2.0]
+    traj = Trajectory(np.array([1, 2, 3], dtype=np.int64) * 10**9 + 123, P)
+    out.write_trajectory(traj)
+    out.write_keyframes(Trajectory(traj.stamps_ns[[0, 2]], P[[0, 2]]))
+    back = read_tum(out.trajectory_path)
+    np.testing.assert_array_equal(back.stamps_ns, traj.stamps_ns)
+    np.testing.assert_allclose(back.poses, P, atol=1e-9)
+    assert len(read_tum(out.keyframes_path)) == 2
+    rgb = np.zeros((6, 8, 3), np.uint8)
+    rgb[..., 0] = 200  # red
+    p = out.save_render("kf_000001", rgb)
+    assert p == out.renders_dir / "kf_000001.png"
+    np.testing.assert_array_equal(cv2.imread(str(p))[..., ::-1], rgb)
+    # float torch input in [0, 1], name with .png, mono
+    p2 = out.save_render("novel.png", torch.full((6, 8, 3), 0.5))
+    assert cv2.imread(str(p2))[0, 0, 0] == 128
+    out.save_render("mono", np.ones((6, 8), np.float32))
+    for bad in ("../x", "a/b", ""):
+        with pytest.raises(InputError, match="plain file name"):
+            out.save_render(bad, rgb)
+    with pytest.raises(InputError, match="expected"):
+        out.save_render("bad", np.zeros((6, 8, 4), np.uint8))
+    # the contract: no placeholder map written by the output helper
+    assert not out.map_path.exists()
+    assert sorted(x.name for x in out.out_dir.iterdir()) == ["keyframes.tum", "renders", "trajectory.tum"]
+
+
+def test_run_output_rejects_file_path(tmp_path):
+    f = tmp_path / "file"
+    f.write_text("x")
+    with pytest.raises(InputError, match="not a folder"):
+        RunOutput(f)
+
+
+def test_peak_rss_mb():
+    a = peak_rss_mb()
+    assert 10 < a < 100_000
+    big = np.ones(40 * 2**20 // 8)  # 40 MiB touched
+    assert peak_rss_mb() >= a
+    assert peak_rss_mb(include_children=True) >= peak_rss_mb()
+    del big

@@ -1,0 +1,211 @@
+"""The output contract of a SLAM run (documented in docs/output_contract.md).
+
+An output folder holds::
+
+    trajectory.tum   every frame after initialisation, cam0 T_wc, TUM (ns stamps, 9 decimals)
+    keyframes.tum    the keyframes' final poses, cam0 T_wc, TUM
+    map.ply          the 2D Gaussian map (written by the mapper, not here)
+    metrics.json     one object with exactly the keys of METRIC_KEYS (null where not applicable)
+    renders/         PNG renders (uint8 RGB)
+
+Every file is written atomically (temp file + rename).
+"""
+from __future__ import annotations
+
+import json
+import math
+import os
+import re
+import resource
+import sys
+from pathlib import Path
+from typing import Any, Union
+
+import numpy as np
+
+from ..errors import InputError
+from ..trajectory_io import write_tum
+from ..types import Trajectory
+from ..util import atomic_write_bytes, atomic_write_text
+
+TRAJECTORY_FILE = "trajectory.tum"
+KEYFRAMES_FILE = "keyframes.tum"
+MAP_FILE = "map.ply"
+METRICS_FILE = "metrics.json"
+RENDERS_DIR = "renders"
+
+#: metrics.json keys, in file order. Units: wall_s s, fps frames/s, ate_* m, psnr_* dB,
+#: peak_rss_mb MiB; rpe is the dict of vings_core.eval.traj.rpe (or null).
+METRIC_KEYS = (
+    "frames", "frames_tracked", "keyframes", "wall_s", "fps",
+    "ate_sim3_m", "ate_se3_m", "sim3_scale", "rpe",
+    "psnr_keyframes_db", "psnr_novel_db", "ssim_keyframes",
+    "num_gaussians", "peak_rss_mb",
+)
+_INT_KEYS = {"frames", "frames_tracked", "keyframes", "num_gaussians"}
+#: Keys of :func:`vings_core.eval.traj.evaluate_trajectory`'s result that go into metrics.json.
+TRAJECTORY_METRIC_KEYS = ("ate_sim3_m", "ate_se3_m", "sim3_scale", "rpe")
+
+
+def metrics_template() -> dict:
+    """A metrics dict with every key of :data:`METRIC_KEYS` set to None."""
+    return {k: None for k in METRIC_KEYS}
+
+
+def _clean(v: Any, where: str) -> Any:
+    """JSON-safe copy: numpy scalars/arrays -> Python, non-finite floats -> None."""
+    if v is None or isinstance(v, (bool, str)):
+        return v
+    if isinstance(v, (np.bool_,)):
+        return bool(v)
+    if isinstance(v, (int, np.integer)):
+        return int(v)
+    if isinstance(v, (float, np.floating)):
+        f = float(v)
+        return f if math.isfinite(f) else None
+    if isinstance(v, dict):
+        return {str(k): _clean(x, f"{where}.{k}") for k, x in v.items()}
+    if isinstance(v, (list, tuple, np.ndarray)):
+        return [_clean(x, f"{where}[]") for x in (v.tolist() if isinstance(v, np.ndarray) else v)]
+    if hasattr(v, "item") and callable(v.item):  # torch scalar
+        return _clean(v.item(), where)
+    raise ValueError(f"metrics value {where} has unsupported type {type(v).__name__}")
+
+
+def validate_metrics(metrics: dict) -> dict:
+    """Check keys and types; returns a complete JSON-safe dict in :data:`METRIC_KEYS` order.
+
+    Unknown keys raise ValueError (a programming error); missing keys become None; non-finite
+    numbers (e.g. the PSNR of identical images) become None; ``rpe`` must be a dict or None; the
+    other values numbers or None."""
+    unknown = [k for k in metrics if k not in METRIC_KEYS]
+    if unknown:
+        raise ValueError(f"unknown metrics key(s) {unknown}; allowed: {list(METRIC_KEYS)}")
+    out = metrics_template()
+    for k, v in metrics.items():
+        v = _clean(v, k)
+        if k == "rpe":
+            if v is not None and not isinstance(v, dict):
+                raise ValueError(f"metrics 'rpe' must be a dict or None, got {type(v).__name__}")
+        elif v is not None and (isinstance(v, bool) or not isinstance(v, (int, float))):
+            raise ValueError(f"metrics {k!r} must be a number or None, got {v!r}")
+        elif k in _INT_KEYS and v is not None:
+            if float(v) != int(v):
+                raise ValueError(f"metrics {k!r} must be an integer, got {v!r}")
+            v = int(v)
+        out[k] = v
+    return out
+
+
+def peak_rss_mb(include_children: bool = False) -> float:
+    """Peak resident set size of this process in MiB (``getrusage`` ``ru_maxrss``).
+
+    With ``include_children`` the peak of the largest terminated-and-waited-for child is added
+    (an upper bound of the footprint when children ran alongside)."""
+    unit = 1.0 if sys.platform == "darwin" else 1024.0  # bytes on macOS, KiB on Linux
+    rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * unit
+    if include_children:
+        rss += resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss * unit
+    return rss / 2 ** 20
+
+
+_NAME_RE = re.compile(r"^[A-Za-z0-9._-]+$")
+
+
+def _to_uint8_rgb(rgb: Any, name: str) -> np.ndarray:
+    if hasattr(rgb, "detach"):
+        rgb = rgb.detach().cpu().numpy()
+    a = np.asarray(rgb)
+    if a.ndim == 3 and a.shape[2] == 1:
+        a = a[..., 0]
+    if not (a.ndim == 2 or (a.ndim == 3 and a.shape[2] == 3)):
+        raise InputError(f"render {name!r}: expected (H, W, 3) or (H, W), got shape {a.shape}")
+    if a.dtype == np.uint8:
+        return a
+    if np.issubdtype(a.dtype, np.floating):
+        if not np.all(np.isfinite(a)):
+            raise InputError(f"render {name!r}: non-finite pixel values")
+        return (np.clip(a, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
+    raise InputError(f"render {name!r}: expected uint8 or float in [0, 1], got dtype {a.dtype}")
+
+
+class RunOutput:
+    """Writer of one SLAM run's output folder (created on first write). All writes are atomic."""
+
+    def __init__(self, out_dir: Union[str, os.PathLike]) -> None:
+        self.out_dir = Path(out_dir)
+        if self.out_dir.exists() and not self.out_dir.is_dir():
+            raise InputError(f"{self.out_dir}: output path exists and is not a folder")
+
+    @property
+    def trajectory_path(self) -> Path:
+        return self.out_dir / TRAJECTORY_FILE
+
+    @property
+    def keyframes_path(self) -> Path:
+        return self.out_dir / KEYFRAMES_FILE
+
+    @property
+    def map_path(self) -> Path:
+        """Where the mapper writes the Gaussian map (nothing here writes it)."""
+        return self.out_dir / MAP_FILE
+
+    @property
+    def metrics_path(self) -> Path:
+        return self.out_dir / METRICS_FILE
+
+    @property
+    def renders_dir(self) -> Path:
+        return self.out_dir / RENDERS_DIR
+
+    def write_trajectory(self, traj: Trajectory) -> Path:
+        """Every frame after initialisation, cam0 ``T_wc`` -> ``trajectory.tum``."""
+        write_tum(self.trajectory_path, traj)
+        return self.trajectory_path
+
+    def write_keyframes(self, traj: Trajectory) -> Path:
+        """Keyframe poses (stamp = keyframe identity), cam0 ``T_wc`` -> ``keyframes.tum``."""
+        write_tum(self.keyframes_path, traj)
+        return self.keyframes_path
+
+    def write_metrics(self, metrics: dict) -> dict:
+        """Validate (:func:`validate_metrics`) and write ``metrics.json``; returns what was written."""
+        m = validate_metrics(metrics)
+        atomic_write_text(self.metrics_path, json.dumps(m, indent=2, allow_nan=False) + "\n")
+        return m
+
+    def read_metrics(self) -> dict:
+        """The current ``metrics.json`` (a template if absent)."""
+        if not self.metrics_path.is_file():
+            return metrics_template()
+        try:
+            d = json.loads(self.metrics_path.read_text())
+        except json.JSONDecodeError as e:
+            raise InputError(f"{self.metrics_path}: not valid JSON ({e})") from None
+        if not isinstance(d, dict):
+            raise InputError(f"{self.metrics_path}: expected a JSON object")
+        return validate_metrics(d)
+
+    def update_metrics(self, partial: dict) -> dict:
+        """Merge ``partial`` into the existing ``metrics.json`` (e.g. ATE added after the run)."""
+        m = self.read_metrics()
+        m.update(partial)
+        return self.write_metrics(m)
+
+    def save_render(self, name: str, rgb: Any) -> Path:
+        """Write ``renders/<name>.png`` from ``(H, W, 3)``/``(H, W)`` uint8 or float [0, 1]
+        (numpy or torch) RGB. ``name`` is a plain file name (``[A-Za-z0-9._-]``)."""
+        import cv2
+
+        stem = name[:-4] if name.lower().endswith(".png") else name
+        if not _NAME_RE.match(stem) or stem in (".", ".."):
+            raise InputError(f"render name {name!r} must be a plain file name of [A-Za-z0-9._-]")
+        img = _to_uint8_rgb(rgb, name)
+        if img.ndim == 3:
+            img = np.ascontiguousarray(img[..., ::-1])  # RGB -> BGR for OpenCV
+        ok, buf = cv2.imencode(".png", img)
+        if not ok:
+            raise InputError(f"render {name!r}: PNG encoding failed")
+        path = self.renders_dir / f"{stem}.png"
+        atomic_write_bytes(path, buf.tobytes())
+        return path
