@@ -1,0 +1,375 @@
+"""ROS 1 bags, ROS 2 bags (sqlite3 or mcap storage) and plain ``.mcap`` files, via rosbags' AnyReader.
+
+Messages read: ``sensor_msgs/Image`` (any encoding of :mod:`image_codec`), ``CompressedImage``
+(JPEG/PNG), ``Imu``, ``CameraInfo``; ground truth from a ``PoseStamped``,
+``PoseWithCovarianceStamped``, ``Odometry`` or ``TransformStamped`` topic (the body pose).
+
+Topics: chosen by ``SourceOptions.image_topic``/``imu_topic``/``camera_info_topic``/``gt_topic``, or
+detected by message type: one non-empty topic of the type is used; several are an error listing them
+(camera info: the one sharing the image topic's namespace). Ground truth is read from ``gt_topic``
+or, by default, ``/ground_truth/pose`` when present.
+
+Stamps are the message ``header.stamp``; a zero header stamp falls back to the bag's receive time
+(with a warning). Calibration: ``SourceOptions.calib_file``, else ``<stem>.calib.yaml`` beside the
+file/folder (what :func:`vings_core.io.write_mcap` writes), else the CameraInfo topic; a calibration
+YAML may add ``T_bc`` and IMU noise to a CameraInfo.
+
+Memory: the constructor reads the bag once keeping only stamps, IMU, camera info and ground truth
+(and decodes the first image for its size); :meth:`frames` reads the image topic again.
+"""
+from __future__ import annotations
+
+import contextlib
+import struct
+from pathlib import Path
+from typing import Iterator, Optional
+
+import numpy as np
+
+from ..errors import InputError
+from ..geometry import np_quat_to_rotmat
+from ..types import CameraModel, Frame
+from .base import SourceOptions
+from .calib_yaml import CalibParts, distortion_model_name, make_camera, read_calibration_parts
+from .common import LoaderSource, check_size, order_stamps
+from .image_codec import decode_compressed, decode_image
+
+IMAGE = "sensor_msgs/msg/Image"
+COMPRESSED = "sensor_msgs/msg/CompressedImage"
+IMAGE_TYPES = (IMAGE, COMPRESSED)
+IMU = "sensor_msgs/msg/Imu"
+CAMERA_INFO = "sensor_msgs/msg/CameraInfo"
+GT_TYPES = ("geometry_msgs/msg/PoseStamped", "geometry_msgs/msg/PoseWithCovarianceStamped",
+            "nav_msgs/msg/Odometry", "geometry_msgs/msg/TransformStamped")
+DEFAULT_GT_TOPIC = "/ground_truth/pose"
+
+
+def calib_yaml_beside(path: Path) -> Optional[Path]:
+    """``<stem>.calib.yaml`` beside a bag file/folder, or ``calib.yaml`` inside a bag folder."""
+    path = Path(path)
+    stem = path.name if path.is_dir() else path.stem
+    cands = [path.parent / f"{stem}.calib.yaml"]
+    if path.is_dir():
+        cands += [path / "calib.yaml", path / f"{stem}.calib.yaml"]
+    return next((c for c in cands if c.is_file()), None)
+
+
+def header_stamp_ns(raw: bytes, ros1: bool, where: str) -> int:
+    """``header.stamp`` of a serialized message whose first field is a std_msgs/Header."""
+    if len(raw) < 12:
+        raise InputError(f"{where}: message of {len(raw)} bytes is too short to hold a header")
+    if ros1:  # uint32 seq, uint32 sec, uint32 nsec
+        sec, nsec = struct.unpack_from("<II", raw, 4)
+    else:  # CDR: 4-byte encapsulation (byte 1: 1 = little endian), int32 sec, uint32 nanosec
+        e = "<" if raw[1] == 1 else ">"
+        sec, nsec = struct.unpack_from(e + "iI", raw, 4)
+    return int(sec) * 1_000_000_000 + int(nsec)
+
+
+def _stamp_of(msg) -> int:
+    st = msg.header.stamp
+    return int(st.sec) * 1_000_000_000 + int(getattr(st, "nanosec", getattr(st, "nsec", 0)))
+
+
+def _field(msg, *names):
+    for n in names:
+        if hasattr(msg, n):
+            return getattr(msg, n)
+    raise AttributeError(names[0])
+
+
+def camera_from_camera_info(msg, where: str) -> Optional[CameraModel]:
+    """A CameraInfo message (ROS 1 or 2 field names) -> raw CameraModel, or None if uncalibrated."""
+    K = np.asarray(_field(msg, "k", "K"), dtype=np.float64).reshape(3, 3)
+    D = np.asarray(_field(msg, "d", "D"), dtype=np.float64).reshape(-1)
+    if K[0, 0] <= 0 or K[1, 1] <= 0:
+        return None
+    name = msg.distortion_model or ("plumb_bob" if D.size else "none")
+    model = distortion_model_name(name, f"{where}: distortion_model")
+    if model == "equidistant":
+        D = D[:4]
+    return make_camera(int(msg.width), int(msg.height), K[0, 0], K[1, 1], K[0, 2], K[1, 2], model, D,
+                       where)
+
+
+def pose_of(msg, msgtype: str) -> np.ndarray:
+    if msgtype.endswith("TransformStamped"):
+        t, q = msg.transform.translation, msg.transform.rotation
+    else:
+        p = msg.pose.pose if msgtype.endswith(("Odometry", "PoseWithCovarianceStamped")) else msg.pose
+        t, q = p.position, p.orientation
+    T = np.eye(4)
+    qq = np.array([q.x, q.y, q.z, q.w], dtype=np.float64)
+    n = np.linalg.norm(qq)
+    T[:3, :3] = np_quat_to_rotmat(qq / n) if n > 1e-9 else np.full((3, 3), np.nan)
+    T[:3, 3] = [t.x, t.y, t.z]
+    return T
+
+
+class BagSource(LoaderSource):
+    """ROS 1 ``.bag``, ROS 2 bag folder (``metadata.yaml``), ``.db3`` or plain ``.mcap`` (module doc)."""
+
+    def __init__(self, path: str | Path, options: Optional[SourceOptions] = None) -> None:
+        path = Path(path)
+        if path.is_dir() and not (path / "metadata.yaml").is_file():
+            inner = sorted(list(path.glob("*.mcap")) + list(path.glob("*.db3")))
+            if len(inner) == 1:
+                path = inner[0]
+        super().__init__(path, "mcap" if path.suffix == ".mcap" else "bag", options)
+        if not self.path.exists():
+            raise InputError(f"{self.path}: bag not found")
+        self._ros1 = self.path.suffix == ".bag"
+        self.format = ("ROS 1 bag" if self._ros1 else "MCAP file" if self.path.suffix == ".mcap"
+                       else "ROS 2 bag folder" if self.path.is_dir() else "ROS 2 sqlite3 file")
+        o = self.options
+        with self._open() as r:
+            self.topic_table = {n: {"type": i.msgtype, "count": int(i.msgcount)}
+                                for n, i in r.topics.items()}
+            self.image_topic = self._pick("image", o.image_topic, IMAGE_TYPES)
+            self.imu_topic = self._pick("IMU", o.imu_topic, (IMU,))
+            self.camera_info_topic = self._pick_camera_info(o.camera_info_topic)
+            gt = o.gt_topic or (DEFAULT_GT_TOPIC if DEFAULT_GT_TOPIC in self.topic_table else None)
+            self.gt_topic = self._pick("ground-truth", gt, GT_TYPES) if gt else None
+            self._first_pass(r)
+
+    # -- reader --------------------------------------------------------------------------------
+    @contextlib.contextmanager
+    def _open(self):
+        from rosbags.highlevel import AnyReader
+        from rosbags.typesys import Stores, get_typestore
+        store = get_typestore(Stores.ROS1_NOETIC if self._ros1 else Stores.ROS2_JAZZY)
+        try:
+            r = AnyReader([self.path], default_typestore=store)
+            r.open()
+        except Exception as e:  # noqa: BLE001 - rosbags raises many kinds; report them uniformly
+            raise InputError(f"{self.path}: cannot open {self.format}: {e}") from None
+        try:
+            yield r
+        finally:
+            with contextlib.suppress(Exception):
+                r.close()
+
+    def _conns(self, r, topic: Optional[str]) -> list:
+        return [c for c in r.connections if c.topic == topic] if topic else []
+
+    def _deser(self, r, raw, conn, where: str):
+        try:
+            return r.deserialize(raw, conn.msgtype)
+        except Exception as e:  # noqa: BLE001
+            raise InputError(f"{where}: cannot deserialize {conn.msgtype}: {e}") from None
+
+    # -- topic choice ----------------------------------------------------------------------------
+    def _topics_of(self, types) -> list[str]:
+        return sorted(t for t, i in self.topic_table.items() if i["type"] in types)
+
+    def _describe(self) -> str:
+        return ", ".join(f"{t} ({i['type']}, {i['count']} msgs)" for t, i in
+                         sorted(self.topic_table.items())) or "none"
+
+    def _pick(self, role: str, requested: Optional[str], types) -> Optional[str]:
+        if requested:
+            if requested not in self.topic_table:
+                raise InputError(f"{self.path}: {role} topic {requested!r} not found; topics in the "
+                                 f"bag: {self._describe()}")
+            info = self.topic_table[requested]
+            if info["type"] not in types:
+                raise InputError(f"{self.path}: {role} topic {requested!r} has type {info['type']}, "
+                                 f"expected {' or '.join(types)}")
+            if info["count"] == 0:
+                raise InputError(f"{self.path}: {role} topic {requested!r} is empty (0 messages)")
+            return requested
+        cands = self._topics_of(types)
+        full = [t for t in cands if self.topic_table[t]["count"] > 0]
+        if len(cands) > len(full):
+            self._warn(f"{self.path}: empty {role} topic(s) ignored: "
+                       f"{', '.join(t for t in cands if t not in full)}")
+        if len(full) > 1:
+            opt = {"image": "--image-topic", "IMU": "--imu-topic"}.get(role, "the topic option")
+            raise InputError(f"{self.path}: several {role} topics: {', '.join(full)}; choose one with "
+                             f"{opt}")
+        return full[0] if full else None
+
+    def _pick_camera_info(self, requested: Optional[str]) -> Optional[str]:
+        if requested:
+            return self._pick("camera-info", requested, (CAMERA_INFO,))
+        cands = [t for t in self._topics_of((CAMERA_INFO,)) if self.topic_table[t]["count"] > 0]
+        if len(cands) <= 1:
+            return cands[0] if cands else None
+        if self.image_topic:
+            def common(a: str, b: str) -> int:
+                pa, pb = a.strip("/").split("/"), b.strip("/").split("/")
+                n = 0
+                while n < min(len(pa), len(pb)) and pa[n] == pb[n]:
+                    n += 1
+                return n
+            score = {t: common(t, self.image_topic) for t in cands}
+            best = max(score.values())
+            top = [t for t in cands if score[t] == best]
+            if len(top) == 1 and best > 0:
+                return top[0]
+        raise InputError(f"{self.path}: several camera-info topics: {', '.join(cands)}; choose one "
+                         f"with --camera-info-topic")
+
+    # -- first pass ------------------------------------------------------------------------------
+    def _first_pass(self, r) -> None:
+        topics = [t for t in (self.image_topic, self.imu_topic, self.camera_info_topic, self.gt_topic)
+                  if t]
+        conns = [c for c in r.connections if c.topic in topics]
+        img_st: list[int] = []
+        img_zero = 0
+        first_img = None
+        imu_st: list[int] = []
+        imu_v: list[tuple] = []
+        imu_missing = {"gyro": 0, "accel": 0}
+        cam_msg = None
+        gt_st: list[int] = []
+        gt_T: list[np.ndarray] = []
+        for conn, t, raw in (r.messages(connections=conns) if conns else ()):
+            topic = conn.topic
+            if topic == self.image_topic:
+                s = header_stamp_ns(raw, self._ros1, f"{self.path}:{topic}")
+                if s == 0:
+                    s, img_zero = int(t), img_zero + (1 if t else 0)
+                img_st.append(s)
+                if first_img is None:
+                    first_img = self._decode(r, conn, raw, s)
+            elif topic == self.imu_topic:
+                m = self._deser(r, raw, conn, f"{self.path}:{topic}")
+                s = _stamp_of(m) or int(t)
+                if m.angular_velocity_covariance[0] == -1:
+                    imu_missing["gyro"] += 1
+                if m.linear_acceleration_covariance[0] == -1:
+                    imu_missing["accel"] += 1
+                w, a = m.angular_velocity, m.linear_acceleration
+                imu_st.append(s)
+                imu_v.append((w.x, w.y, w.z, a.x, a.y, a.z))
+            elif topic == self.camera_info_topic:
+                if cam_msg is None:
+                    m = self._deser(r, raw, conn, f"{self.path}:{topic}")
+                    if camera_from_camera_info(m, f"{self.path}:{topic}") is not None:
+                        cam_msg = m
+            elif topic == self.gt_topic:
+                m = self._deser(r, raw, conn, f"{self.path}:{topic}")
+                gt_st.append(_stamp_of(m) if _stamp_of(m) else int(t))
+                gt_T.append(pose_of(m, conn.msgtype))
+
+        if img_zero:
+            self._warn(f"{self.path}:{self.image_topic}: {img_zero} image(s) with a zero header stamp; "
+                       f"used the bag receive time")
+        # frames: sorted, de-duplicated, limited
+        st = np.asarray(img_st, dtype=np.int64)
+        idx = order_stamps(st, f"{self.path}:{self.image_topic}", self._warn)
+        idx = idx[: self._limit(len(idx))]
+        self._stamps = st[idx]
+        self._pos = {int(s): i for i, s in enumerate(self._stamps)}
+
+        # IMU
+        if self.imu_topic:
+            v = np.asarray(imu_v, dtype=np.float64).reshape(-1, 6)
+            bad = [k for k, n in imu_missing.items() if n]
+            if bad:
+                self._warn(f"{self.path}:{self.imu_topic}: messages mark {' and '.join(bad)} as "
+                           f"unavailable (covariance[0] = -1); IMU not used")
+                v = v[:0]
+                imu_st = []
+            elif not np.all(np.isfinite(v)):
+                keep = np.all(np.isfinite(v), axis=1)
+                self._warn(f"{self.path}:{self.imu_topic}: {int((~keep).sum())} IMU sample(s) with "
+                           f"non-finite values dropped")
+                v = v[keep]
+                imu_st = list(np.asarray(imu_st)[keep])
+            self._set_imu(np.asarray(imu_st, dtype=np.int64), v[:, :3], v[:, 3:], f"{self.path}:{self.imu_topic}")
+
+        # ground truth (body)
+        if self.gt_topic and gt_st:
+            T = np.stack(gt_T)
+            ok = np.all(np.isfinite(T.reshape(len(T), -1)), axis=1)
+            if not ok.all():
+                self._warn(f"{self.path}:{self.gt_topic}: {int((~ok).sum())} pose(s) with a zero "
+                           f"quaternion or non-finite values dropped")
+            self._set_gt(np.asarray(gt_st, dtype=np.int64)[ok], T[ok], f"{self.path}:{self.gt_topic}",
+                         "body")
+
+        # calibration
+        parts = CalibParts()
+        yaml_path = self.options.calib_file or calib_yaml_beside(self.path)
+        self.calib_source = None
+        if yaml_path:
+            parts = read_calibration_parts(yaml_path)
+            self.calib_source = str(yaml_path)
+        camera = parts.camera
+        if camera is None and cam_msg is not None:
+            camera = camera_from_camera_info(cam_msg, f"{self.path}:{self.camera_info_topic}")
+            self.calib_source = f"{self.camera_info_topic} (CameraInfo)"
+            if camera is not None and (camera.width == 0 or camera.height == 0) and first_img is not None:
+                camera = None
+        has_imu = len(self._imu_st) > 0
+        parts.has_imu = has_imu
+        parts.imu_rate_hz = self._imu_rate() or parts.imu_rate_hz
+        if first_img is not None:
+            h, w = first_img.shape[:2]
+            if camera is None:
+                raise InputError(
+                    f"{self.path}: no calibration for image topic {self.image_topic}: no usable "
+                    f"CameraInfo topic and no calibration YAML (looked for "
+                    f"{self.path.parent / ((self.path.name if self.path.is_dir() else self.path.stem) + '.calib.yaml')}); "
+                    f"pass --calib FILE or --camera-info-topic")
+            camera = check_size(camera, w, h, f"{self.path}:{self.image_topic}", self._warn)
+        if has_imu and not parts.noise:
+            self._warn(f"{self.path}: IMU noise parameters unknown; using the defaults (EuRoC "
+                       f"ADIS16448)")
+        if camera is not None:
+            if has_imu and parts.T_bc is None:
+                self._warn(f"{self.path}: camera-to-IMU extrinsic T_bc unknown; assuming identity "
+                           f"(give it in a calibration YAML with --calib)")
+            self._set_camera(camera, parts.to_calibration(camera))
+        else:  # no camera in this recording: IMU (and GT) only
+            self.calibration = parts.to_calibration(None)
+        if first_img is not None:
+            self._first_img_dtype = str(first_img.dtype)
+
+    # -- decoding --------------------------------------------------------------------------------
+    def _decode(self, r, conn, raw, stamp: int) -> np.ndarray:
+        where = f"{self.path}:{conn.topic} @ {stamp} ns"
+        m = self._deser(r, raw, conn, where)
+        if conn.msgtype == COMPRESSED:
+            return decode_compressed(m.data, m.format, where)
+        return decode_image(m.data, m.encoding, m.width, m.height, m.step, where,
+                            is_bigendian=bool(m.is_bigendian))
+
+    # -- Source API ------------------------------------------------------------------------------
+    def frame_stamps(self) -> np.ndarray:
+        return self._stamps.copy()
+
+    def frames(self) -> Iterator[Frame]:
+        n = len(self._stamps)
+        if n == 0:
+            return
+        with self._open() as r:
+            conns = self._conns(r, self.image_topic)
+            pending: dict[int, tuple[np.ndarray, int]] = {}
+            done = np.zeros(n, dtype=bool)
+            nxt = 0
+            for conn, t, raw in r.messages(connections=conns):
+                s = header_stamp_ns(raw, self._ros1, f"{self.path}:{conn.topic}") or int(t)
+                i = self._pos.get(s)
+                if i is None or done[i]:
+                    continue  # dropped duplicate, or beyond max_frames
+                done[i] = True
+                pending[i] = (self._decode(r, conn, raw, s), s)
+                while nxt in pending:
+                    img, s2 = pending.pop(nxt)
+                    yield self._deliver(img, s2, f"{self.path}:{conn.topic} @ {s2} ns")
+                    nxt += 1
+                if nxt >= n:
+                    return
+        if nxt < n:
+            raise InputError(f"{self.path}:{self.image_topic}: {n - nxt} image(s) seen on the first "
+                             f"read were not found again (bag changed while reading?)")
+
+    def _extra_info(self) -> dict:
+        return {"format": self.format,
+                "topics_used": {"image": self.image_topic, "imu": self.imu_topic,
+                                "camera_info": self.camera_info_topic, "ground_truth": self.gt_topic},
+                "calibration_from": self.calib_source,
+                "topics": self.topic_table}

@@ -1,0 +1,175 @@
+"""KITTI odometry folders (one sequence).
+
+Layout (``PATH`` is the sequence folder, e.g. ``dataset/sequences/06``)::
+
+    image_0/ | image_l/ | image_2/  000000.png ...  (first found is used; image_0/_l = left gray)
+    times.txt      one time [s] per frame (if missing: 10 Hz from 0, with a warning)
+    calib.txt      3x4 projection matrices P0..P3, one per line, with or without "P0:" labels
+    poses.txt | poses/NN.txt | ../../poses/NN.txt   row-major 3x4 [R|t] of camera 0 (optional)
+
+Images are rectified (no distortion). Ground truth is the pose of camera 0 in the frame of camera 0
+at frame 0; with ``image_2`` it is moved to camera 2 using P2's baseline. ``gt_frame == 'camera'``.
+There is no IMU.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Optional
+
+import numpy as np
+
+from ..errors import InputError
+from ..types import Calibration, CameraModel
+from .base import SourceOptions
+from .calib_yaml import read_calibration_parts
+from .common import FileFramesSource, check_size
+from .image_codec import read_image_file
+
+IMAGE_DIRS = (("image_0", 0), ("image_l", 0), ("image_2", 2))
+
+
+def kitti_image_dir(path: Path) -> Optional[tuple[Path, int]]:
+    for name, cam in IMAGE_DIRS:
+        if (path / name).is_dir():
+            return path / name, cam
+    return None
+
+
+def read_kitti_calib(path: Path) -> dict[int, np.ndarray]:
+    """``calib.txt`` -> {camera index: 3x4 P}; lines labelled ``P<i>:`` or unlabelled (line i)."""
+    if not path.is_file():
+        raise InputError(f"{path}: KITTI calib.txt not found")
+    out: dict[int, np.ndarray] = {}
+    unlabelled = 0
+    for ln, line in enumerate(path.read_text().splitlines(), 1):
+        line = line.strip()
+        if not line:
+            continue
+        label = None
+        if ":" in line:
+            label, line = line.split(":", 1)
+            label = label.strip()
+        try:
+            v = np.array([float(x) for x in line.split()])
+        except ValueError:
+            raise InputError(f"{path}:{ln}: not a list of numbers") from None
+        if label is None:
+            key = unlabelled
+            unlabelled += 1
+        elif len(label) == 2 and label[0] == "P" and label[1].isdigit():
+            key = int(label[1])
+        else:
+            continue  # Tr:, R0_rect: ...
+        if v.size != 12:
+            raise InputError(f"{path}:{ln}: P{key} needs 12 numbers, got {v.size}")
+        out[key] = v.reshape(3, 4)
+    if not out:
+        raise InputError(f"{path}: no projection matrices found")
+    return out
+
+
+def read_kitti_poses(path: Path) -> np.ndarray:
+    """Poses file -> (N, 4, 4) float64."""
+    rows = []
+    for ln, line in enumerate(path.read_text().splitlines(), 1):
+        if not line.strip():
+            continue
+        try:
+            v = np.array([float(x) for x in line.split()])
+        except ValueError:
+            raise InputError(f"{path}:{ln}: not a list of numbers") from None
+        if v.size == 13:  # some copies put the time in front
+            v = v[1:]
+        if v.size != 12:
+            raise InputError(f"{path}:{ln}: expected 12 numbers (row-major 3x4), got {v.size}")
+        T = np.eye(4)
+        T[:3, :] = v.reshape(3, 4)
+        rows.append(T)
+    if not rows:
+        raise InputError(f"{path}: no poses")
+    return np.stack(rows)
+
+
+def find_kitti_poses(path: Path) -> Optional[Path]:
+    seq = path.resolve().name
+    cands = [path / "poses.txt", path / "poses" / f"{seq}.txt", path.parent.parent / "poses" / f"{seq}.txt"]
+    for c in cands:
+        if c.is_file():
+            return c
+    pdir = path / "poses"
+    if pdir.is_dir():
+        txt = sorted(pdir.glob("*.txt"))
+        if len(txt) == 1:
+            return txt[0]
+    return None
+
+
+class KittiSource(FileFramesSource):
+    """KITTI odometry sequence loader (see the module doc)."""
+
+    def __init__(self, path: str | Path, options: Optional[SourceOptions] = None) -> None:
+        super().__init__(Path(path), "kitti", options)
+        if not self.path.is_dir():
+            raise InputError(f"{self.path}: KITTI folder not found")
+        found = kitti_image_dir(self.path)
+        if found is None:
+            raise InputError(f"{self.path}: no image_0/, image_l/ or image_2/ folder")
+        img_dir, cam = found
+        self.camera_index = cam
+        files = sorted(p for p in img_dir.iterdir() if p.suffix.lower() in (".png", ".jpg"))
+        if not files:
+            raise InputError(f"{img_dir}: no images")
+
+        times = self.path / "times.txt"
+        if times.is_file():
+            from .common import read_table
+            st, _, _ = read_table(times, 1, "frame times (times.txt)", stamp_in_seconds=True)
+            if len(st) < len(files):
+                if len(st) == 0:
+                    raise InputError(f"{times}: no time stamps")
+                self._warn(f"{times}: {len(st)} times for {len(files)} images; using the first "
+                           f"{len(st)} images")
+                files = files[: len(st)]
+            elif len(st) > len(files):
+                self._warn(f"{times}: {len(st)} times for {len(files)} images; extra times ignored")
+                st = st[: len(files)]
+        else:
+            self._warn(f"{times} not found: assuming 10 Hz frames from t = 0")
+            st = np.arange(len(files), dtype=np.int64) * 100_000_000
+        self._set_frames(st, files, str(times))
+
+        first = read_image_file(self._files[0] if self._files else files[0])
+        h, w = first.shape[:2]
+        if self.options.calib_file:
+            parts = read_calibration_parts(self.options.calib_file)
+            if parts.camera is None:
+                raise InputError(f"{self.options.calib_file}: no camera calibration in this file")
+            raw = check_size(parts.camera, w, h, str(files[0]), self._warn)
+            calib = parts.to_calibration(raw)
+            P_cam = None
+        else:
+            Ps = read_kitti_calib(self.path / "calib.txt")
+            if cam not in Ps:
+                raise InputError(f"{self.path / 'calib.txt'}: no P{cam} for {img_dir.name}/")
+            P_cam = Ps[cam]
+            raw = CameraModel(w, h, P_cam[0, 0], P_cam[1, 1], P_cam[0, 2], P_cam[1, 2])
+            calib = Calibration(camera=raw)
+        calib.has_imu = False
+        self._set_camera(raw, calib)
+
+        pose_file = find_kitti_poses(self.path)
+        if pose_file is not None:
+            poses = read_kitti_poses(pose_file)
+            all_st = st
+            if len(poses) < len(all_st):
+                self._warn(f"{pose_file}: {len(poses)} poses for {len(all_st)} frames; ground truth "
+                           f"covers the first {len(poses)}")
+            m = min(len(poses), len(all_st))
+            poses = poses[:m]
+            if P_cam is not None and cam != 0:
+                # x_cam = x_cam0 + t with t = K^-1 P[:, 3]: T_cam0_cam = [I | -t]
+                t = np.linalg.solve(P_cam[:, :3], P_cam[:, 3])
+                T0c = np.eye(4)
+                T0c[:3, 3] = -t
+                poses = poses @ T0c
+            self._set_gt(np.asarray(all_st[:m]), poses, str(pose_file), "camera")
