@@ -144,14 +144,15 @@ class ImuSample:
 class Calibration:
     """Sensor rig calibration.
 
-    ``camera``: cam0 model at the working resolution (after undistortion ``distortion_model='none'``).
+    ``camera``: cam0 model at the working resolution (after undistortion ``distortion_model='none'``);
+    ``None`` for IMU-only recordings (no image topic).
     ``T_bc``: cam0-to-body 4x4. IMU noise in continuous time: ``gyro_noise_density`` rad/s/sqrt(Hz),
     ``gyro_random_walk`` rad/s^2/sqrt(Hz), ``accel_noise_density`` m/s^2/sqrt(Hz),
     ``accel_random_walk`` m/s^3/sqrt(Hz). ``imu_rate_hz`` is nominal; ``has_imu`` is False for
     camera-only sources. ``gravity`` is the magnitude in m/s^2.
     """
 
-    camera: CameraModel
+    camera: Optional[CameraModel]
     T_bc: np.ndarray = field(default_factory=lambda: np.eye(4))
     gyro_noise_density: float = 1.6968e-4
     gyro_random_walk: float = 1.9393e-5
@@ -165,7 +166,7 @@ class Calibration:
         self.T_bc = np.asarray(self.T_bc, dtype=np.float64).reshape(4, 4)
 
     def to_dict(self) -> dict:
-        return {"camera": self.camera.to_dict(), "T_bc": self.T_bc.tolist(),
+        return {"camera": self.camera.to_dict() if self.camera is not None else None, "T_bc": self.T_bc.tolist(),
                 "gyro_noise_density": self.gyro_noise_density,
                 "gyro_random_walk": self.gyro_random_walk,
                 "accel_noise_density": self.accel_noise_density,
@@ -176,7 +177,8 @@ class Calibration:
     def from_dict(d: dict) -> "Calibration":
         kw = {k: d[k] for k in ("gyro_noise_density", "gyro_random_walk", "accel_noise_density",
                                 "accel_random_walk", "imu_rate_hz", "has_imu", "gravity") if k in d}
-        return Calibration(camera=CameraModel.from_dict(d["camera"]),
+        cam = d.get("camera")
+        return Calibration(camera=CameraModel.from_dict(cam) if cam else None,
                            T_bc=np.asarray(d.get("T_bc", np.eye(4)), dtype=np.float64), **kw)
 
 

@@ -116,7 +116,7 @@ class Source(ABC):
             "duration_s": float((fs[-1] - fs[0]) * 1e-9) if len(fs) > 1 else 0.0,
             "imu_samples": int(len(ist)),
             "imu_rate_hz": rate(ist),
-            "resolution": [cam.width, cam.height],
+            "resolution": [cam.width, cam.height] if cam is not None else None,
             "native_resolution": [raw.width, raw.height] if raw is not None else None,
             "calibration": self.calibration.to_dict(),
             "ground_truth": None if gt is None or len(gt) == 0 else {
