@@ -1,0 +1,347 @@
+"""Write a synthetic sequence as an EuRoC/ASL folder (plus a ROS 2 MCAP).
+
+Layout of ``out_dir`` (EuRoC conventions; stamps are int nanoseconds)::
+
+    mav0/cam0/data/<ns>.png                 RGB PNG
+    mav0/cam0/data.csv                      #timestamp [ns],filename
+    mav0/cam0/sensor.yaml                   pinhole intrinsics, radial-tangential zeros, T_BS = T_bc
+    mav0/imu0/data.csv                      t, w_RS_S xyz [rad s^-1], a_RS_S xyz [m s^-2] (200 Hz)
+    mav0/imu0/sensor.yaml                   noise densities / random walks, rate_hz
+    mav0/state_groundtruth_estimate0/data.csv   body pose p, q(wxyz), v, b_w, b_a (IMU rate)
+    mav0/depth0/data/<ns>.npy               float32 z-depth (m), 0 = sky
+    mav0/mask0/data/<ns>.png                uint8, 255 = moving object
+    sim.json                                summary
+    <scene>.mcap (+ <scene>.calib.yaml)     ROS 2 MCAP written by vings_core.io.write_mcap
+
+Everything is written under a temporary sibling folder and renamed onto ``out_dir`` at the end.
+"""
+from __future__ import annotations
+
+import json
+import logging
+import os
+import shutil
+import time
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+from typing import Optional
+
+import numpy as np
+
+from ..errors import ConfigError, VingsError
+from ..geometry import np_rotmat_to_quat
+from ..util import atomic_write_json
+from . import render_view
+from .imu import ImuNoise, simulate_imu
+from .scene import SCENES, STREET_LENGTH_DEFAULT, Scene, default_camera, make_scene
+from .trajectory import TimeScaledMotion
+
+log = logging.getLogger("vings.sim")
+
+T0_NS = 1_700_000_000_000_000_000   # first stamp (ns), EuRoC-like magnitude
+IMU_RATE_HZ = 200.0
+ROOM_FRAMES_DEFAULT = 300
+SUMMARY_NAME = "sim.json"
+
+
+def _plan(scene_name: str, frames: Optional[int], fps: float, loop: bool,
+          length_m: Optional[float]) -> tuple[Optional[int], Optional[float]]:
+    """Validate options; returns (frames or None = derive from the route, street length)."""
+    if scene_name not in SCENES:
+        raise ConfigError(f"unknown scene {scene_name!r}; expected one of {SCENES}")
+    if not (np.isfinite(fps) and 1.0 <= fps <= 200.0):
+        raise ConfigError(f"fps must be in [1, 200], got {fps}")
+    if abs(IMU_RATE_HZ / fps - round(IMU_RATE_HZ / fps)) > 1e-9:
+        raise ConfigError(f"fps must divide the IMU rate {IMU_RATE_HZ:g} Hz (e.g. 10, 20, 25, 40), "
+                          f"got {fps}")
+    if frames is not None and int(frames) < 2:
+        raise ConfigError(f"frames must be >= 2, got {frames}")
+    if scene_name == "room":
+        if loop:
+            raise ConfigError("--loop applies to the street scene only")
+        if length_m is not None:
+            raise ConfigError("--length-m applies to the street scene only")
+        return int(frames or ROOM_FRAMES_DEFAULT), None
+    if length_m is None and frames is not None and not loop:
+        # long enough for the requested frames at the fastest cruise speed
+        length_m = max(50.0, (int(frames) - 1) / fps * 12.0 + 10.0)
+    return (int(frames) if frames is not None else None), length_m
+
+
+def build_scene(scene_name: str, seed: int = 0, dynamic: bool = False, loop: bool = False,
+                length_m: Optional[float] = None, fps: float = 20.0) -> Scene:
+    """The scene :func:`generate` renders. For closed street routes the motion is time-scaled
+    (by < 0.1 %) so its duration is a whole number of camera periods: the last frame is then
+    exactly at the start pose."""
+    kw = {"dynamic": dynamic}
+    if scene_name == "street":
+        kw.update(loop=loop, length_m=length_m)
+    scene = make_scene(scene_name, seed=seed, **kw)
+    if scene_name == "street" and loop:
+        D = scene.motion.duration
+        D2 = np.ceil(D * fps - 1e-9) / fps
+        scene.motion = TimeScaledMotion(scene.motion, D / D2)
+    return scene
+
+
+def _sensor_yaml_cam(camera, T_bc: np.ndarray, fps: float) -> str:
+    d = ", ".join(f"{v:.12g}" for v in T_bc.reshape(-1))
+    return ("%YAML:1.0\n"
+            "# General sensor definitions.\n"
+            "sensor_type: camera\n"
+            "comment: VINGS simulator cam0 (ideal pinhole, ray-cast)\n\n"
+            "# Sensor extrinsics wrt. the body-frame.\n"
+            "T_BS:\n  cols: 4\n  rows: 4\n"
+            f"  data: [{d}]\n\n"
+            "# Camera specific definitions.\n"
+            f"rate_hz: {fps:g}\n"
+            f"resolution: [{camera.width}, {camera.height}]\n"
+            "camera_model: pinhole\n"
+            f"intrinsics: [{camera.fx:.12g}, {camera.fy:.12g}, {camera.cx:.12g}, {camera.cy:.12g}]"
+            " #fu, fv, cu, cv\n"
+            "distortion_model: radial-tangential\n"
+            "distortion_coefficients: [0.0, 0.0, 0.0, 0.0]\n")
+
+
+_IDENTITY_T_BS = ("T_BS:\n  cols: 4\n  rows: 4\n"
+                  "  data: [1.0, 0.0, 0.0, 0.0,\n         0.0, 1.0, 0.0, 0.0,\n"
+                  "         0.0, 0.0, 1.0, 0.0,\n         0.0, 0.0, 0.0, 1.0]\n")
+
+
+def _sensor_yaml_imu(noise: ImuNoise) -> str:
+    return ("%YAML:1.0\n"
+            "sensor_type: imu\n"
+            "comment: VINGS simulator IMU (EuRoC ADIS16448-like noise)\n\n"
+            "# Sensor extrinsics wrt. the body-frame.\n" + _IDENTITY_T_BS +
+            f"rate_hz: {IMU_RATE_HZ:g}\n\n"
+            "# inertial sensor noise model parameters (static)\n"
+            f"gyroscope_noise_density: {noise.gyro_noise_density:.6e}     # [ rad / s / sqrt(Hz) ]\n"
+            f"gyroscope_random_walk: {noise.gyro_random_walk:.6e}       # [ rad / s^2 / sqrt(Hz) ]\n"
+            f"accelerometer_noise_density: {noise.accel_noise_density:.6e}  # [ m / s^2 / sqrt(Hz) ]\n"
+            f"accelerometer_random_walk: {noise.accel_random_walk:.6e}    # [ m / s^3 / sqrt(Hz) ]\n")
+
+
+def _sensor_yaml_gt() -> str:
+    return ("%YAML:1.0\n"
+            "sensor_type: visual-inertial\n"
+            "comment: exact ground truth of the simulated body (IMU) frame\n\n" + _IDENTITY_T_BS)
+
+
+def _write_csv(path: Path, header: str, stamps: np.ndarray, values: Optional[np.ndarray] = None,
+               names: Optional[list[str]] = None) -> None:
+    lines = [header]
+    if names is not None:
+        lines += [f"{int(s)},{n}" for s, n in zip(stamps, names)]
+    else:
+        for s, row in zip(stamps, values):
+            lines.append(f"{int(s)}," + ",".join(f"{v:.17g}" for v in row))
+    path.write_text("\n".join(lines) + "\n")
+
+
+def _check_out_dir(out: Path) -> None:
+    if out.exists():
+        if not out.is_dir():
+            raise ConfigError(f"{out}: output path exists and is not a folder")
+        entries = [p.name for p in out.iterdir()]
+        if entries and SUMMARY_NAME not in entries:
+            raise ConfigError(f"{out}: folder exists, is not empty and is not a simulator output "
+                              f"(no {SUMMARY_NAME}); choose another --out or remove it")
+
+
+def generate(scene_name: str, out_dir, frames: Optional[int] = None, width: int = 376,
+             height: int = 240, seed: int = 0, dynamic: bool = False, loop: bool = False,
+             length_m: Optional[float] = None, mcap: bool = True, fps: float = 20.0,
+             noise: bool = True, progress: bool = False) -> Path:
+    """Render scene ``scene_name`` and write it as an EuRoC/ASL folder at ``out_dir`` (and, if
+    ``mcap``, ``<out_dir>/<scene>.mcap`` via :func:`vings_core.io.write_mcap`). Returns ``out_dir``.
+
+    ``frames``: number of camera frames (room default 300; street default: the whole route,
+    ``length_m`` m, default 400, or the whole loop). ``fps``: camera rate (must divide 200 Hz).
+    ``noise=False`` writes the exact IMU (no noise, zero biases). ``seed`` fixes scene, motion and
+    noise. The summary (see :func:`summarize`) is saved as ``<out_dir>/sim.json``.
+    """
+    wall0 = time.time()
+    out = Path(out_dir).expanduser().absolute()
+    frames_req, length_m = _plan(scene_name, frames, fps, loop, length_m)
+    camera = default_camera(int(width), int(height))
+    _check_out_dir(out)
+    scene = build_scene(scene_name, seed=seed, dynamic=dynamic, loop=loop, length_m=length_m, fps=fps)
+
+    period_ns = int(round(1e9 / fps))
+    imu_step_ns = int(round(1e9 / IMU_RATE_HZ))
+    notes: list[str] = []
+    D = scene.motion.duration
+    if frames_req is None:
+        n_frames = int(np.floor(D * fps + 1e-6)) + 1
+    else:
+        n_frames = frames_req
+        if D is not None and (n_frames - 1) / fps > D + 1e-9:
+            max_frames = int(np.floor(D * fps + 1e-6)) + 1
+            raise ConfigError(f"{n_frames} frames at {fps:g} Hz last {(n_frames - 1) / fps:.1f} s but "
+                              f"the {scene.info.get('route_length_m', 0):.0f} m route lasts {D:.1f} s "
+                              f"(at most {max_frames} frames); raise --length-m or lower --frames")
+        if loop and (n_frames - 1) / fps < D - 1e-9:
+            notes.append(f"only {n_frames} of {int(np.floor(D * fps + 1e-6)) + 1} frames: the loop "
+                         "is not closed")
+    frame_ns = np.arange(n_frames, dtype=np.int64) * period_ns
+    n_imu = int(frame_ns[-1] // imu_step_ns) + 1
+    imu_ns = np.arange(n_imu, dtype=np.int64) * imu_step_ns
+    t_frames = frame_ns * 1e-9
+    t_imu = imu_ns * 1e-9
+
+    rng = np.random.default_rng(np.random.SeedSequence([int(seed), 0x1A2B]))
+    noise_cfg = ImuNoise()
+    imu = simulate_imu(scene.motion, t_imu, noise_cfg if noise else None, rng if noise else None)
+    gt = scene.motion.sample(t_imu)
+    T_wc = scene.T_wc(t_frames)
+
+    tmp = out.parent / f".{out.name}.tmp-{os.getpid()}"
+    if tmp.exists():
+        shutil.rmtree(tmp)
+    try:
+        mav0 = tmp / "mav0"
+        dirs = {k: mav0 / k for k in ("cam0", "imu0", "state_groundtruth_estimate0", "depth0", "mask0")}
+        for k in ("cam0", "depth0", "mask0"):
+            (dirs[k] / "data").mkdir(parents=True)
+        for k in ("imu0", "state_groundtruth_estimate0"):
+            dirs[k].mkdir(parents=True)
+        stamps = T0_NS + frame_ns
+        names = [f"{s}.png" for s in stamps]
+        stats = _render_all(scene, camera, T_wc, t_frames, stamps, dirs, progress)
+        _write_csv(dirs["cam0"] / "data.csv", "#timestamp [ns],filename", stamps, names=names)
+        _write_csv(dirs["depth0"] / "data.csv", "#timestamp [ns],filename", stamps,
+                   names=[f"{s}.npy" for s in stamps])
+        _write_csv(dirs["mask0"] / "data.csv", "#timestamp [ns],filename", stamps, names=names)
+        (dirs["cam0"] / "sensor.yaml").write_text(_sensor_yaml_cam(camera, scene.T_bc, fps))
+        istamps = T0_NS + imu_ns
+        _write_csv(dirs["imu0"] / "data.csv",
+                   "#timestamp [ns],w_RS_S_x [rad s^-1],w_RS_S_y [rad s^-1],w_RS_S_z [rad s^-1],"
+                   "a_RS_S_x [m s^-2],a_RS_S_y [m s^-2],a_RS_S_z [m s^-2]",
+                   istamps, np.hstack([imu.gyro, imu.accel]))
+        (dirs["imu0"] / "sensor.yaml").write_text(_sensor_yaml_imu(noise_cfg))
+        q_xyzw = np_rotmat_to_quat(gt.R)
+        q_wxyz = np.hstack([q_xyzw[:, 3:], q_xyzw[:, :3]])
+        q_wxyz *= np.where(q_wxyz[:, :1] < 0, -1.0, 1.0)
+        _write_csv(dirs["state_groundtruth_estimate0"] / "data.csv",
+                   "#timestamp, p_RS_R_x [m], p_RS_R_y [m], p_RS_R_z [m], q_RS_w [], q_RS_x [], "
+                   "q_RS_y [], q_RS_z [], v_RS_R_x [m s^-1], v_RS_R_y [m s^-1], v_RS_R_z [m s^-1], "
+                   "b_w_RS_S_x [rad s^-1], b_w_RS_S_y [rad s^-1], b_w_RS_S_z [rad s^-1], "
+                   "b_a_RS_S_x [m s^-2], b_a_RS_S_y [m s^-2], b_a_RS_S_z [m s^-2]",
+                   istamps, np.hstack([gt.p, q_wxyz, gt.v, imu.bias_gyro, imu.bias_accel]))
+        (dirs["state_groundtruth_estimate0"] / "sensor.yaml").write_text(_sensor_yaml_gt())
+
+        summary = summarize(scene, camera, gt, t_frames, fps, seed, noise, stats, notes)
+        mcap_path = None
+        if mcap:
+            mcap_path, why = _write_mcap(tmp, scene_name)
+            if why:
+                notes.append(why)
+        summary["mcap"] = str(out / mcap_path.name) if mcap_path else None
+        summary["out_dir"] = str(out)
+        summary["wall_s"] = round(time.time() - wall0, 3)
+        atomic_write_json(tmp / SUMMARY_NAME, summary)
+        _swap_in(tmp, out)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    log.info("sim: wrote %d frames of %s to %s in %.1f s", n_frames, scene_name, out,
+             time.time() - wall0)
+    return out
+
+
+def _render_all(scene: Scene, camera, T_wc: np.ndarray, t_frames: np.ndarray, stamps: np.ndarray,
+                dirs: dict, progress: bool) -> dict:
+    """Render every frame; PNG/NPY encoding overlaps with rendering on a worker thread."""
+    import cv2
+
+    n = len(t_frames)
+    dyn_px = np.zeros(n)
+    dmin, dmax = np.inf, 0.0
+    sky_frac = np.zeros(n)
+    render_s = 0.0
+
+    def save(i: int, rgb: np.ndarray, depth: np.ndarray, mask: np.ndarray) -> None:
+        s = int(stamps[i])
+        if not cv2.imwrite(str(dirs["cam0"] / "data" / f"{s}.png"), rgb[..., ::-1]):
+            raise VingsError(f"could not write {dirs['cam0'] / 'data' / f'{s}.png'}")
+        np.save(dirs["depth0"] / "data" / f"{s}.npy", depth)
+        cv2.imwrite(str(dirs["mask0"] / "data" / f"{s}.png"), mask.astype(np.uint8) * 255)
+
+    it = range(n)
+    if progress:
+        from tqdm import tqdm
+        it = tqdm(it, desc=f"sim {scene.name}", unit="frame")
+    pending = []
+    with ThreadPoolExecutor(max_workers=1) as pool:
+        for i in it:
+            t0 = time.perf_counter()
+            rgb, depth, mask = render_view(scene, camera, T_wc[i], float(t_frames[i]))
+            render_s += time.perf_counter() - t0
+            valid = depth > 0
+            if valid.any():
+                dmin = min(dmin, float(depth[valid].min()))
+                dmax = max(dmax, float(depth[valid].max()))
+            sky_frac[i] = 1.0 - valid.mean()
+            dyn_px[i] = mask.mean()
+            pending.append(pool.submit(save, i, rgb, depth, mask))
+            if len(pending) > 8:
+                pending.pop(0).result()
+        for f in pending:
+            f.result()
+    return {"render_ms_per_frame": round(1e3 * render_s / n, 2),
+            "depth_range_m": [round(dmin, 4) if np.isfinite(dmin) else None, round(dmax, 4)],
+            "sky_fraction": round(float(sky_frac.mean()), 4),
+            "dynamic_pixel_fraction": round(float(dyn_px.mean()), 5),
+            "frames_with_dynamic": int((dyn_px > 0).sum())}
+
+
+def summarize(scene: Scene, camera, gt, t_frames: np.ndarray, fps: float, seed: int, noise: bool,
+              stats: dict, notes: list) -> dict:
+    """The ``sim.json`` summary of a generated sequence."""
+    steps = np.linalg.norm(np.diff(gt.p, axis=0), axis=1)
+    speed = np.linalg.norm(gt.v, axis=1)
+    T_wb_first = scene.T_wb(t_frames[:1])[0]
+    T_wb_last = scene.T_wb(t_frames[-1:])[0]
+    return {
+        "scene": scene.name, "seed": int(seed), "frames": int(len(t_frames)), "fps": float(fps),
+        "duration_s": round(float(t_frames[-1]), 6), "imu_samples": int(len(gt.t)),
+        "imu_rate_hz": IMU_RATE_HZ, "path_length_m": round(float(steps.sum()), 3),
+        "mean_speed_mps": round(float(speed.mean()), 3), "max_speed_mps": round(float(speed.max()), 3),
+        "loop": bool(scene.info.get("loop", False)),
+        "start_end_distance_m": float(np.linalg.norm(T_wb_last[:3, 3] - T_wb_first[:3, 3])),
+        "dynamic": bool(scene.movers), "moving_objects": len(scene.movers),
+        "imu_noise": bool(noise), "resolution": [camera.width, camera.height],
+        "intrinsics": [camera.fx, camera.fy, camera.cx, camera.cy],
+        "T_bc": scene.T_bc.tolist(), "first_stamp_ns": T0_NS,
+        "scene_info": scene.info, **stats, "notes": list(notes),
+    }
+
+
+def _write_mcap(tmp: Path, scene_name: str) -> tuple[Optional[Path], Optional[str]]:
+    """``<tmp>/<scene>.mcap`` via the I/O layer, or (None, reason) if it is not available."""
+    try:
+        from ..io import open_source, write_mcap
+    except ImportError as e:                       # the I/O layer is optional for the generator
+        msg = f"MCAP skipped: vings_core.io.write_mcap is not available ({e})"
+        log.warning(msg)
+        return None, msg
+    path = tmp / f"{scene_name}.mcap"
+    write_mcap(path, open_source(tmp))
+    return path, None
+
+
+def _swap_in(tmp: Path, out: Path) -> None:
+    """Rename ``tmp`` onto ``out``; a previous simulator output there is replaced."""
+    old = None
+    if out.exists():
+        _check_out_dir(out)
+        old = out.parent / f".{out.name}.old-{os.getpid()}"
+        os.replace(out, old)
+    os.replace(tmp, out)
+    if old is not None:
+        shutil.rmtree(old, ignore_errors=True)
+
+
+def load_summary(out_dir) -> dict:
+    """The ``sim.json`` of a generated folder."""
+    return json.loads((Path(out_dir) / SUMMARY_NAME).read_text())

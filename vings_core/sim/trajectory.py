@@ -1,0 +1,450 @@
+"""Smooth body trajectories with analytic derivatives (for exact IMU synthesis).
+
+Frames: world z up (gravity -z); body x forward, y left, z up. Orientation is yaw-pitch-roll
+``R_wb = Rz(yaw) Ry(pitch) Rx(roll)``. A :class:`Motion` returns, for times ``t`` (s), the body
+position, velocity and acceleration in the world and the body angular velocity in the body frame,
+all analytic (C2 or smoother), so that the IMU built from them is exactly consistent with the poses.
+
+* :class:`HandheldMotion`: sums of sinusoids (room scene), unbounded in time.
+* :class:`DriveMotion`: a car-like motion along a route of straights and 90-degree turns on a street
+  grid. Turn heading follows a quintic smooth step (curvature C1), speed follows quintic smooth
+  ramps (slow down before turns, speed up after), so position is C3. A closed route returns exactly
+  (to quadrature precision, ~1e-9 m) to its start with the same velocity.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Optional
+
+import numpy as np
+
+
+@dataclass
+class MotionSample:
+    """Body state at times ``t`` (N,): ``p``, ``v``, ``a`` (N, 3) world (m, m/s, m/s^2); ``R`` (N, 3, 3)
+    ``R_wb``; ``w`` (N, 3) angular velocity of the body in the body frame (rad/s)."""
+
+    t: np.ndarray
+    p: np.ndarray
+    v: np.ndarray
+    a: np.ndarray
+    R: np.ndarray
+    w: np.ndarray
+
+    def T_wb(self) -> np.ndarray:
+        """(N, 4, 4) body-to-world poses."""
+        T = np.zeros((len(self.t), 4, 4))
+        T[:, :3, :3] = self.R
+        T[:, :3, 3] = self.p
+        T[:, 3, 3] = 1.0
+        return T
+
+
+def euler_zyx(yaw, pitch, roll) -> np.ndarray:
+    """(N, 3, 3) ``Rz(yaw) Ry(pitch) Rx(roll)``."""
+    cy, sy = np.cos(yaw), np.sin(yaw)
+    cp, sp = np.cos(pitch), np.sin(pitch)
+    cr, sr = np.cos(roll), np.sin(roll)
+    R = np.empty(np.shape(yaw) + (3, 3))
+    R[..., 0, 0] = cy * cp
+    R[..., 0, 1] = cy * sp * sr - sy * cr
+    R[..., 0, 2] = cy * sp * cr + sy * sr
+    R[..., 1, 0] = sy * cp
+    R[..., 1, 1] = sy * sp * sr + cy * cr
+    R[..., 1, 2] = sy * sp * cr - cy * sr
+    R[..., 2, 0] = -sp
+    R[..., 2, 1] = cp * sr
+    R[..., 2, 2] = cp * cr
+    return R
+
+
+def euler_zyx_body_rates(pitch, roll, dyaw, dpitch, droll) -> np.ndarray:
+    """(N, 3) body angular velocity ``vee(R^T dR/dt)`` of ``Rz(yaw) Ry(pitch) Rx(roll)``."""
+    cp, sp = np.cos(pitch), np.sin(pitch)
+    cr, sr = np.cos(roll), np.sin(roll)
+    return np.stack([droll - dyaw * sp,
+                     dpitch * cr + dyaw * cp * sr,
+                     -dpitch * sr + dyaw * cp * cr], axis=-1)
+
+
+class Motion:
+    """A body trajectory; ``duration`` (s) is None when unbounded."""
+
+    duration: Optional[float] = None
+
+    def sample(self, t) -> MotionSample:  # pragma: no cover - interface
+        raise NotImplementedError
+
+    def T_wb(self, t) -> np.ndarray:
+        return self.sample(np.atleast_1d(np.asarray(t, np.float64))).T_wb()
+
+
+# ------------------------------------------------------------------------------ sinusoid sums
+
+
+@dataclass
+class SineSum:
+    """``c + sum_k A_k sin(w_k t + phi_k)`` with exact derivatives."""
+
+    c: float
+    A: np.ndarray
+    w: np.ndarray
+    phi: np.ndarray
+
+    def __call__(self, t, order: int = 0) -> np.ndarray:
+        t = np.asarray(t, np.float64)[..., None]
+        arg = self.w * t + self.phi
+        if order == 0:
+            return self.c + (self.A * np.sin(arg)).sum(-1)
+        if order == 1:
+            return (self.A * self.w * np.cos(arg)).sum(-1)
+        if order == 2:
+            return (-self.A * self.w ** 2 * np.sin(arg)).sum(-1)
+        raise ValueError(order)
+
+
+class HandheldMotion(Motion):
+    """Handheld motion: position and yaw/pitch/roll are sums of sinusoids plus a slow yaw drift.
+
+    ``x, y, z, yaw, pitch, roll`` are :class:`SineSum`; ``yaw_rate`` adds ``yaw_rate * t`` so the
+    camera looks all around the room over time.
+    """
+
+    def __init__(self, x: SineSum, y: SineSum, z: SineSum, yaw: SineSum, pitch: SineSum,
+                 roll: SineSum, yaw_rate: float = 0.0):
+        self.x, self.y, self.z = x, y, z
+        self.yaw, self.pitch, self.roll = yaw, pitch, roll
+        self.yaw_rate = float(yaw_rate)
+        self.duration = None
+
+    def sample(self, t) -> MotionSample:
+        t = np.atleast_1d(np.asarray(t, np.float64))
+        p = np.stack([self.x(t), self.y(t), self.z(t)], -1)
+        v = np.stack([self.x(t, 1), self.y(t, 1), self.z(t, 1)], -1)
+        a = np.stack([self.x(t, 2), self.y(t, 2), self.z(t, 2)], -1)
+        yaw = self.yaw(t) + self.yaw_rate * t
+        pitch, roll = self.pitch(t), self.roll(t)
+        R = euler_zyx(yaw, pitch, roll)
+        w = euler_zyx_body_rates(pitch, roll, self.yaw(t, 1) + self.yaw_rate, self.pitch(t, 1),
+                                 self.roll(t, 1))
+        return MotionSample(t, p, v, a, R, w)
+
+
+def random_handheld(rng: np.random.Generator, center, half_range, z_mean: float,
+                    speed: float = 0.9) -> HandheldMotion:
+    """A handheld motion bounded to ``center +- half_range`` (x, y) and ``z_mean +- 0.2`` m.
+
+    Mean translational speed is roughly ``speed`` m/s; yaw sweeps slowly around with a sway.
+    """
+    hx, hy = half_range
+
+    def ss(c, amps, freqs):
+        amps = np.asarray(amps, np.float64)
+        return SineSum(float(c), amps, np.asarray(freqs, np.float64) * rng.uniform(0.9, 1.1, len(amps)),
+                       rng.uniform(0, 2 * np.pi, len(amps)))
+
+    k = speed / 0.9
+    x = ss(center[0], [0.8 * hx, 0.2 * hx, 0.02], [0.42 * k, 1.05 * k, 2.9])
+    y = ss(center[1], [0.8 * hy, 0.2 * hy, 0.02], [0.55 * k, 1.3 * k, 3.4])
+    z = ss(z_mean, [0.12, 0.05, 0.01], [0.8 * k, 1.7 * k, 3.1])
+    yaw = ss(rng.uniform(-np.pi, np.pi), [0.6, 0.15, 0.01], [0.35, 0.9, 3.7])
+    pitch = ss(-0.08, [0.14, 0.05, 0.006], [0.5, 1.2, 4.1])
+    roll = ss(0.0, [0.07, 0.03, 0.006], [0.6, 1.4, 3.9])
+    return HandheldMotion(x, y, z, yaw, pitch, roll, yaw_rate=rng.choice([-1.0, 1.0]) * 0.3)
+
+
+# ------------------------------------------------------------------------------ driving
+
+# quintic smooth step and its integral/derivatives on [0, 1]
+def _S(u):
+    return u ** 3 * (10 - 15 * u + 6 * u * u)
+
+
+def _S1(u):
+    return 30 * u * u * (1 - u) ** 2
+
+
+def _S2(u):
+    return 60 * u * (1 - u) * (1 - 2 * u)
+
+
+def _Sint(u):
+    return u ** 4 * (2.5 - 3 * u + u * u)
+
+
+_GL_X, _GL_W = np.polynomial.legendre.leggauss(32)
+
+
+def turn_displacement(length: float, dtheta: float, u) -> np.ndarray:
+    """(N, 2) position, in the turn's entry frame (x forward, y left), after a fraction ``u`` (N,) of a
+    turn of arc length ``length`` whose heading goes 0 -> dtheta as ``dtheta * S(u)``.
+    32-point Gauss-Legendre per query (the integrand is an entire function: error ~1e-15)."""
+    u = np.atleast_1d(np.asarray(u, np.float64))
+    x = 0.5 * u[:, None] * (_GL_X[None, :] + 1.0)            # nodes on [0, u]
+    th = dtheta * _S(x)
+    wts = 0.5 * u[:, None] * _GL_W[None, :] * length
+    return np.stack([(wts * np.cos(th)).sum(1), (wts * np.sin(th)).sum(1)], -1)
+
+
+@dataclass
+class _Piece:
+    kind: str            # "straight" | "turn"
+    s0: float            # arc length at its start (m)
+    length: float
+    p0: np.ndarray       # (2,) start position
+    theta0: float        # heading at start
+    dtheta: float = 0.0  # turn angle (turns)
+
+
+@dataclass
+class _Phase:
+    t0: float
+    s0: float
+    v0: float
+    v1: float
+    tau: float           # duration (s)
+
+
+class DriveMotion(Motion):
+    """Planar car motion on a route of straights and smooth 90-degree turns, with a speed profile of
+    quintic ramps, small suspension bounce (height, pitch, roll) and yaw = heading.
+
+    Built by :func:`plan_drive`. ``height``: body height above the road (m).
+    """
+
+    def __init__(self, pieces: list[_Piece], phases: list[_Phase], height: float,
+                 bounce: tuple[SineSum, SineSum, SineSum]):
+        self.pieces = pieces
+        self.phases = phases
+        self.height = float(height)
+        self.zb, self.pitchb, self.rollb = bounce
+        self.total_length = pieces[-1].s0 + pieces[-1].length
+        last = phases[-1]
+        self.duration = last.t0 + last.tau
+        self._ps0 = np.array([p.s0 for p in pieces])
+        self._ph_t0 = np.array([p.t0 for p in phases])
+
+    # -- speed profile (t -> s, ds/dt, d2s/dt2)
+    def arc(self, t) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        t = np.atleast_1d(np.asarray(t, np.float64))
+        i = np.clip(np.searchsorted(self._ph_t0, t, side="right") - 1, 0, len(self.phases) - 1)
+        t0 = self._ph_t0[i]
+        s0 = np.array([p.s0 for p in self.phases])[i]
+        v0 = np.array([p.v0 for p in self.phases])[i]
+        v1 = np.array([p.v1 for p in self.phases])[i]
+        tau = np.array([p.tau for p in self.phases])[i]
+        dt = t - t0
+        u = np.clip(dt / tau, 0.0, 1.0)
+        dv = v1 - v0
+        beyond = dt - u * tau                    # extrapolate at constant end speed
+        s = s0 + v0 * u * tau + dv * tau * _Sint(u) + v1 * beyond
+        v = v0 + dv * _S(u)
+        a = np.where((dt >= 0) & (dt <= tau), dv * _S1(u) / tau, 0.0)
+        return s, v, a
+
+    # -- geometry (s -> position, heading, curvature)
+    def geometry(self, s) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        s = np.atleast_1d(np.asarray(s, np.float64))
+        j = np.clip(np.searchsorted(self._ps0, s, side="right") - 1, 0, len(self.pieces) - 1)
+        pos = np.empty((len(s), 2))
+        th = np.empty(len(s))
+        kap = np.zeros(len(s))
+        for k in np.unique(j):
+            m = j == k
+            pc = self.pieces[k]
+            ds = s[m] - pc.s0
+            c, sn = np.cos(pc.theta0), np.sin(pc.theta0)
+            if pc.kind == "straight":
+                pos[m] = pc.p0 + ds[:, None] * np.array([c, sn])
+                th[m] = pc.theta0
+            else:
+                u = np.clip(ds / pc.length, 0.0, 1.0)
+                d = turn_displacement(pc.length, pc.dtheta, u)
+                pos[m] = pc.p0 + d[:, :1] * np.array([c, sn]) + d[:, 1:] * np.array([-sn, c])
+                th[m] = pc.theta0 + pc.dtheta * _S(u)
+                kap[m] = pc.dtheta * _S1(u) / pc.length
+        return pos, th, kap
+
+    def sample(self, t) -> MotionSample:
+        t = np.atleast_1d(np.asarray(t, np.float64))
+        s, sd, sdd = self.arc(t)
+        pos, th, kap = self.geometry(s)
+        c, sn = np.cos(th), np.sin(th)
+        tan = np.stack([c, sn], -1)
+        nor = np.stack([-sn, c], -1)
+        z = self.height + self.zb(t)
+        p = np.concatenate([pos, z[:, None]], -1)
+        v = np.concatenate([sd[:, None] * tan, self.zb(t, 1)[:, None]], -1)
+        a2 = sdd[:, None] * tan + (sd * sd * kap)[:, None] * nor
+        a = np.concatenate([a2, self.zb(t, 2)[:, None]], -1)
+        pitch, roll = self.pitchb(t), self.rollb(t)
+        R = euler_zyx(th, pitch, roll)
+        w = euler_zyx_body_rates(pitch, roll, kap * sd, self.pitchb(t, 1), self.rollb(t, 1))
+        return MotionSample(t, p, v, a, R, w)
+
+
+def _turn_offsets(length: float, dtheta: float) -> tuple[float, float]:
+    """Distances (d_in, d_out) from the turn's start/end to the corner where its entry and exit
+    lines meet."""
+    D = turn_displacement(length, dtheta, np.array([1.0]))[0]
+    e_out = np.array([np.cos(dtheta), np.sin(dtheta)])
+    # D = d_in * (1, 0) + d_out * e_out
+    d_out = D[1] / e_out[1]
+    d_in = D[0] - d_out * e_out[0]
+    return float(d_in), float(d_out)
+
+
+def plan_drive(corners: np.ndarray, closed: bool, rng: np.random.Generator, *,
+               turn_length: float = 22.0, v_turn: float = 5.5, v_cruise=(8.5, 11.5),
+               ramp_length: float = 20.0, height: float = 1.58, start_fraction: float = 0.5,
+               total_length: Optional[float] = None) -> DriveMotion:
+    """A :class:`DriveMotion` through rectilinear ``corners`` (K, 2) (lane positions of the 90-degree
+    turns, plus the route's start and end for open routes).
+
+    Closed routes start (and end) at ``start_fraction`` of the first leg, at cruise speed, and
+    return to exactly the same state. Open routes are cut at ``total_length`` (m) if given.
+    """
+    corners = np.asarray(corners, np.float64)
+    if closed:
+        pts = np.vstack([corners, corners[:1]])
+    else:
+        pts = corners
+    dirs = np.diff(pts, axis=0)
+    seg_len = np.linalg.norm(dirs, axis=1)
+    if np.any(seg_len < 1e-9):
+        raise ValueError("route has repeated corners")
+    heads = np.arctan2(dirs[:, 1], dirs[:, 0])
+    nseg = len(dirs)
+    # turn angle at the end of each leg (towards the next)
+    turns = []
+    for i in range(nseg if closed else nseg - 1):
+        d = (heads[(i + 1) % nseg] - heads[i] + np.pi) % (2 * np.pi) - np.pi
+        if abs(abs(d) - np.pi / 2) > 1e-6:
+            raise ValueError("route corners must be 90-degree turns")
+        turns.append(float(np.sign(d) * np.pi / 2))
+    offs = {+1: _turn_offsets(turn_length, np.pi / 2), -1: _turn_offsets(turn_length, -np.pi / 2)}
+
+    # legs: straight part of each segment between the turns at its ends
+    legs = []   # (p_start, heading, length, turn_after or None)
+    for i in range(nseg):
+        e = dirs[i] / seg_len[i]
+        before = turns[i - 1] if (closed or i > 0) else None
+        after = turns[i] if (closed or i < nseg - 1) else None
+        a0 = offs[int(np.sign(before))][1] if before is not None else 0.0
+        a1 = offs[int(np.sign(after))][0] if after is not None else 0.0
+        L = seg_len[i] - a0 - a1
+        if L < 2 * ramp_length - 1e-9 and (before is not None and after is not None):
+            raise ValueError(f"route leg {i} too short ({seg_len[i]:.1f} m) for turns and ramps")
+        if L < 0:
+            raise ValueError(f"route leg {i} too short ({seg_len[i]:.1f} m)")
+        legs.append((pts[i] + a0 * e, heads[i], L, after))
+
+    v_c = [float(rng.uniform(*v_cruise)) for _ in legs]
+    if closed:
+        # start inside leg 0: split it so the route starts and ends at the same place and speed
+        p0, h0, L0, turn0 = legs[0]
+        cut = start_fraction * L0
+        cut = float(np.clip(cut, ramp_length, L0 - ramp_length)) if L0 >= 2 * ramp_length else 0.5 * L0
+        e0 = np.array([np.cos(h0), np.sin(h0)])
+        first = (p0 + cut * e0, h0, L0 - cut, turn0)
+        last = (p0, h0, cut, None)
+        legs = [first] + legs[1:] + [last]
+        v_c = v_c + [v_c[0]]
+
+    pieces: list[_Piece] = []
+    phases: list[_Phase] = []
+    s = 0.0
+    t = 0.0
+    v_now = v_c[0]
+
+    def add_phase(v0, v1, dist):
+        nonlocal t
+        tau = 2.0 * dist / (v0 + v1)
+        phases.append(_Phase(t0=t, s0=s_phase[0], v0=v0, v1=v1, tau=tau))
+        s_phase[0] += dist
+        t += tau
+
+    s_phase = [0.0]
+    n_legs = len(legs)
+    for li, (p_start, head, L, turn_after) in enumerate(legs):
+        pieces.append(_Piece("straight", s, L, np.asarray(p_start, np.float64), float(head)))
+        # speed on this leg: from v_now, ramp to cruise, ramp down to v_turn before a turn
+        vc = v_c[li]
+        has_turn = turn_after is not None
+        ramp_in = ramp_length if abs(v_now - vc) > 1e-9 else 0.0
+        ramp_out = ramp_length if has_turn else 0.0
+        if closed and li == n_legs - 1:
+            ramp_out = 0.0
+        if ramp_in + ramp_out > L + 1e-9:
+            scale = L / (ramp_in + ramp_out)
+            ramp_in *= scale
+            ramp_out *= scale
+        if ramp_in > 0:
+            add_phase(v_now, vc, ramp_in)
+        cruise = L - ramp_in - ramp_out
+        if cruise > 1e-12:
+            add_phase(vc, vc, cruise)
+        if ramp_out > 0:
+            add_phase(vc, v_turn, ramp_out)
+            v_now = v_turn
+        else:
+            v_now = vc
+        s += L
+        if has_turn:
+            p_end = np.asarray(p_start) + L * np.array([np.cos(head), np.sin(head)])
+            pieces.append(_Piece("turn", s, turn_length, p_end, float(head), turn_after))
+            add_phase(v_now, v_now, turn_length)
+            s += turn_length
+    duration = phases[-1].t0 + phases[-1].tau
+    motion = DriveMotion(pieces, phases, height, _bounce(rng, duration if closed else None))
+    if total_length is not None and total_length < motion.total_length:
+        # cut an open route: keep phases up to the time the length is reached
+        tt = _time_at_length(motion, total_length)
+        motion.duration = tt
+        motion.total_length = float(total_length)
+    return motion
+
+
+class TimeScaledMotion(Motion):
+    """``base`` played at a slightly different rate: pose(t) = base.pose(scale * t). Derivatives
+    stay exact (v * scale, a * scale^2, w * scale). Used to make a closed route's duration a whole
+    number of camera and IMU periods so the last frame lands exactly on the start."""
+
+    def __init__(self, base: Motion, scale: float):
+        self.base = base
+        self.scale = float(scale)
+        self.duration = None if base.duration is None else base.duration / self.scale
+        self.total_length = getattr(base, "total_length", None)
+
+    def sample(self, t) -> MotionSample:
+        t = np.atleast_1d(np.asarray(t, np.float64))
+        s = self.base.sample(self.scale * t)
+        k = self.scale
+        return MotionSample(t, s.p, s.v * k, s.a * k * k, s.R, s.w * k)
+
+
+def _time_at_length(m: DriveMotion, length: float) -> float:
+    lo, hi = 0.0, m.duration
+    for _ in range(200):
+        mid = 0.5 * (lo + hi)
+        if m.arc(mid)[0][0] < length:
+            lo = mid
+        else:
+            hi = mid
+        if hi - lo < 1e-10:
+            break
+    return 0.5 * (lo + hi)
+
+
+def _bounce(rng: np.random.Generator, period: Optional[float] = None
+            ) -> tuple[SineSum, SineSum, SineSum]:
+    """Small suspension motion: height +-1.5 cm, pitch and roll +-0.4 deg, 1-3 Hz. With ``period``
+    (s) every frequency is a whole multiple of 1/period, so the motion repeats exactly (loops)."""
+    def ss(amps, freqs):
+        freqs = np.asarray(freqs, np.float64) * rng.uniform(0.9, 1.1, len(freqs))
+        if period is not None:
+            freqs = np.maximum(np.round(freqs * period), 1.0) / period
+        return SineSum(0.0, np.asarray(amps, np.float64), 2 * np.pi * freqs,
+                       rng.uniform(0, 2 * np.pi, len(amps)))
+    return (ss([0.01, 0.005], [1.3, 2.7]), ss([0.005, 0.002], [1.1, 2.3]),
+            ss([0.004, 0.002], [0.9, 2.9]))
