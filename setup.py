@@ -15,6 +15,7 @@ setup(
         ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE}"]),
         (f"share/{PACKAGE}", ["package.xml"]),
         (f"share/{PACKAGE}/params", glob("params/*.yaml")),
+        (f"share/{PACKAGE}/launch", glob("launch/*.py")),
     ],
     python_requires=">=3.10",
     install_requires=[],  # pinned set in requirements.txt (see README); ROS deps come from package.xml
@@ -27,6 +28,9 @@ setup(
     entry_points={
         "console_scripts": [
             "vings = vings_ros.cli:main",
+            "frontend_node = vings_ros.frontend_node:main",
+            "mapper_node = vings_ros.mapper_node:main",
+            "recorder_node = vings_ros.recorder:main",
         ],
     },
 )

@@ -1,0 +1,220 @@
+"""``frontend_node``: images (+ camera_info, IMU) in; odometry, path and keyframe packets out.
+
+It only translates messages (``msg_adapters``) and calls :class:`vings_core.frontend.Frontend`, the
+class ``vings run`` uses. Topics and parameters: docs/ros.md.
+"""
+from __future__ import annotations
+
+import threading
+import time
+from typing import Optional
+
+import numpy as np
+from geometry_msgs.msg import PoseStamped  # noqa: F401  (type of keyframe pose parts)
+from nav_msgs.msg import Path
+from rclpy.node import Node
+from sensor_msgs.msg import CameraInfo, Image, Imu
+from std_msgs.msg import Header
+
+from msg_adapters import topics as T
+from msg_adapters.camera_info import camera_info_to_camera
+from msg_adapters.diagnostics import diagnostic_array, tracking_status
+from msg_adapters.image import FrameDecoder
+from msg_adapters.keyframe import keyframe_to_msgs, PART_TOPICS
+from msg_adapters.pose import estimate_to_odometry, path_to_trajectory, trajectory_to_path
+from msg_adapters.stamps import header_ns
+from nav_msgs.msg import Odometry
+from diagnostic_msgs.msg import DiagnosticArray
+from vings_core.errors import InputError
+from vings_core.frontend import Frontend, FrontendConfig
+from vings_core.io.calib_yaml import load_calibration_yaml
+from vings_core.io.undistort import Undistorter
+from vings_core.types import CameraModel, Frame
+
+from .node_common import (InputQueue, NodeConfig, RateMeter, Worker, node_sections, rss_mb,
+                          run_node, section_config)
+
+#: front-end keyframe poses after later window BA moved them (nav_msgs/Path, each pose stamped with
+#: its keyframe stamp); the mapper applies them so both stages hold the same keyframe poses.
+FRONTEND_KEYFRAMES_TOPIC = "/vings/frontend/keyframes"
+
+
+class FrontendNode(Node):
+    def __init__(self) -> None:
+        super().__init__("frontend_node", automatically_declare_parameters_from_overrides=True)
+        secs = node_sections(self)
+        self.ncfg: NodeConfig = section_config(NodeConfig, secs["ros"], "frontend_node: ros")
+        self.fcfg: FrontendConfig = section_config(FrontendConfig, secs["frontend"], "frontend_node: frontend")
+        self.error: Optional[BaseException] = None
+        self.raw_camera: Optional[CameraModel] = None
+        self.undist: Optional[Undistorter] = None
+        self.frontend: Optional[Frontend] = None
+        self.decoder = FrameDecoder(T.IMAGE_TOPIC)
+        self.queue: InputQueue = InputQueue(self.ncfg.queue_policy, self.ncfg.queue_size)
+        self._refined: dict[int, np.ndarray] = {}
+        self._lock = threading.Lock()
+        self.rate = RateMeter()
+        self.imu_count = 0
+        self.frames_without_camera = 0
+        self.last_state = "waiting"
+        self._sent_kf: dict[int, np.ndarray] = {}
+        if self.ncfg.calib_file:
+            calib = load_calibration_yaml(self.ncfg.calib_file)
+            if calib.camera is None:
+                raise InputError(f"{self.ncfg.calib_file}: calibration has no camera")
+            self._set_camera(calib.camera)
+
+        sq = T.sensor_qos
+        self.create_subscription(Image, T.IMAGE_TOPIC, self._on_image, sq(T.IMAGE_DEPTH))
+        self.create_subscription(CameraInfo, T.CAMERA_INFO_TOPIC, self._on_camera_info,
+                                 sq(T.CAMERA_INFO_DEPTH))
+        self.create_subscription(Imu, T.IMU_TOPIC, self._on_imu, sq(T.IMU_DEPTH))
+        self.create_subscription(Path, T.REFINED_KEYFRAMES_TOPIC, self._on_refined, T.latched_qos(1))
+        self.pub_odom = self.create_publisher(Odometry, T.ODOMETRY_TOPIC, sq(T.OUTPUT_DEPTH * 10))
+        self.pub_path = self.create_publisher(Path, T.PATH_TOPIC, T.latched_qos(1))
+        self.pub_kf_path = self.create_publisher(Path, FRONTEND_KEYFRAMES_TOPIC, T.latched_qos(1))
+        self.pub_kf = {p: self.create_publisher(type_, PART_TOPICS[p], sq(T.OUTPUT_DEPTH * 4))
+                       for p, type_ in (("image", Image), ("depth", Image), ("inv_depth_var", Image),
+                                        ("pose", PoseStamped), ("camera_info", CameraInfo))}
+        self.pub_ack = self.create_publisher(Header, T.PROCESSED_TOPIC, sq(T.ACK_DEPTH))
+        self.pub_diag = self.create_publisher(DiagnosticArray, T.DIAGNOSTICS_TOPIC, sq(10))
+        self.create_timer(self.ncfg.diagnostics_period_s, self._publish_diagnostics)
+        self._last_path_pub = 0.0
+        self.worker = Worker("vings-frontend", self._step, self._fail)
+        self.worker.start()
+        self.get_logger().info(f"front end ready (queue policy {self.ncfg.queue_policy}); waiting "
+                               f"for {T.IMAGE_TOPIC} and {'calibration' if self.raw_camera is None else 'images'}")
+
+    # ------------------------------------------------------------------------------ callbacks
+
+    def _fail(self, e: BaseException) -> None:
+        self.get_logger().error(f"front end failed: {e}")
+        self.error = e
+
+    def _on_image(self, msg: Image) -> None:
+        self.queue.put(msg)
+
+    def _on_camera_info(self, msg: CameraInfo) -> None:
+        if self.raw_camera is None:
+            self._set_camera(camera_info_to_camera(msg, T.CAMERA_INFO_TOPIC))
+
+    def _on_imu(self, msg: Imu) -> None:
+        # The IMU is fused in a later stage of the front end; samples are counted for diagnostics.
+        self.imu_count += 1
+
+    def _on_refined(self, msg: Path) -> None:
+        traj = path_to_trajectory(msg, T.REFINED_KEYFRAMES_TOPIC)
+        with self._lock:
+            self._refined.update({int(s): P for s, P in zip(traj.stamps_ns, traj.poses)})
+
+    def _set_camera(self, raw: CameraModel) -> None:
+        w = self.ncfg.width or None
+        h = self.ncfg.height or None
+        self.undist = Undistorter(raw, w, h, undistort=True)
+        self.raw_camera = raw
+        self.frontend = Frontend(self.fcfg, self.undist.camera)
+        cam = self.undist.camera
+        self.get_logger().info(f"camera {raw.width}x{raw.height} -> working {cam.width}x{cam.height}")
+
+    # ----------------------------------------------------------------------------- the worker
+
+    def _step(self) -> None:
+        msg = self.queue.get(timeout=0.1)
+        if msg is None:
+            return
+        stamp = header_ns(msg.header, f"{T.IMAGE_TOPIC}.header")
+        if self.frontend is None:
+            self.frames_without_camera += 1
+            if self.frames_without_camera in (1, 20) or self.frames_without_camera % 200 == 0:
+                self.get_logger().warning(f"no calibration yet (no {T.CAMERA_INFO_TOPIC} and no "
+                                          f"ros.calib_file): {self.frames_without_camera} images skipped")
+            self._ack(msg.header)
+            return
+        frame = self.decoder(msg, self.raw_camera)
+        frame = Frame(stamp, self.undist(frame.image), self.undist.camera)
+        with self._lock:
+            refined, self._refined = self._refined, {}
+        known = {s: P for s, P in refined.items() if s in self._sent_kf}
+        if known:
+            self.frontend.set_poses(known)
+            self._sent_kf.update(known)
+        ests = self.frontend.process(frame)
+        for est in ests:
+            if est.state == "tracking":
+                self.pub_odom.publish(estimate_to_odometry(est, self.ncfg.world_frame,
+                                                           self.ncfg.camera_frame, T.ODOMETRY_TOPIC))
+        self.last_state = ests[-1].state if ests else self.frontend.state
+        self._publish_keyframes(self.frontend.pop_keyframes())
+        self._publish_moved_keyframes()
+        self.rate.tick()
+        now = time.monotonic()
+        if now - self._last_path_pub > 1.0:
+            self._publish_path()
+            self._last_path_pub = now
+        self._ack(msg.header)
+
+    def _ack(self, header: Header) -> None:
+        self.pub_ack.publish(header)
+
+    def _publish_keyframes(self, kfs) -> None:
+        for kf in kfs:
+            msgs = keyframe_to_msgs(kf, self.ncfg.camera_frame, self.ncfg.world_frame)
+            for part, m in msgs.as_dict().items():
+                self.pub_kf[part].publish(m)
+            self._sent_kf[int(kf.stamp_ns)] = kf.T_wc.numpy().copy()
+
+    def _publish_moved_keyframes(self) -> None:
+        """Keyframes already sent whose pose the window BA changed since: one Path of them."""
+        traj = self.frontend.keyframe_trajectory()
+        moved = [(s, P) for s, P in zip(traj.stamps_ns.tolist(), traj.poses)
+                 if s in self._sent_kf and np.abs(self._sent_kf[s] - P).max() > 1e-7]
+        if not moved:
+            return
+        from vings_core.types import Trajectory
+        for s, P in moved:
+            self._sent_kf[s] = P
+        t = Trajectory(np.array([s for s, _ in moved], np.int64), np.stack([P for _, P in moved]))
+        self.pub_kf_path.publish(trajectory_to_path(t, self.ncfg.world_frame))
+
+    def _publish_path(self) -> None:
+        traj = self.frontend.trajectory(states=("tracking",))
+        if len(traj) == 0:
+            return
+        n = self.ncfg.path_max_poses
+        if len(traj) > n:
+            idx = np.linspace(0, len(traj) - 1, n).round().astype(int)
+            from vings_core.types import Trajectory
+            traj = Trajectory(traj.stamps_ns[idx], traj.poses[idx])
+        self.pub_path.publish(trajectory_to_path(traj, self.ncfg.world_frame))
+
+    def _publish_diagnostics(self) -> None:
+        st = self.frontend.status() if self.frontend is not None else {
+            "state": "waiting", "reason": "no calibration yet"}
+        values = {"reason": st.get("reason", ""), "frames": st.get("frames", 0),
+                  "keyframes": st.get("keyframes", 0), "rate_hz": self.rate.hz,
+                  "queue_length": len(self.queue), "queue_policy": self.queue.policy,
+                  "dropped_frames": self.queue.dropped, "received_frames": self.queue.received,
+                  "imu_samples": self.imu_count, "rss_mb": rss_mb()}
+        stamp = self.get_clock().now().nanoseconds
+        self.pub_diag.publish(diagnostic_array(stamp, [tracking_status(
+            "vings/frontend", st.get("state", "waiting"), values, st.get("reason"))]))
+
+    # -------------------------------------------------------------------------------- shutdown
+
+    def shutdown(self) -> None:
+        """Stop the worker and flush the keyframes still in the window to the mapper."""
+        self.queue.close()
+        self.worker.stop()
+        if self.frontend is not None and self.error is None:
+            self._publish_keyframes(self.frontend.finish())
+            self._publish_moved_keyframes()
+            self._publish_path()
+            time.sleep(0.2)  # let reliable writers hand the last packets over
+
+
+def main(args: Optional[list] = None) -> int:
+    return run_node(FrontendNode, args)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

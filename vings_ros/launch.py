@@ -1,0 +1,149 @@
+"""The launcher behind ``vings launch``: starts the node graph as processes, watches them, stops
+them cleanly.
+
+Order: mapper first (it may resume from a checkpoint), then the front end, then the recorder. A
+node that exits on its own is reported and the rest of the graph is stopped (exit code 1). Ctrl-C /
+SIGTERM stops the front end first (it flushes its last keyframes), then the mapper (it finishes its
+queue and writes its checkpoint), then the recorder (it closes the MCAP). Fast DDS shared-memory
+files left by the graph's processes are removed at the end.
+"""
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Optional, TextIO
+
+from vings_core.errors import ConfigError
+
+from .ros_env import cleanup_fastdds_shm, ros_environment, shm_snapshot
+
+NODES = {"frontend_node": "vings_ros.frontend_node", "mapper_node": "vings_ros.mapper_node",
+         "recorder_node": "vings_ros.recorder"}
+#: seconds each node gets to stop after SIGINT before it is killed
+STOP_TIMEOUT_S = {"frontend_node": 20.0, "mapper_node": 180.0, "recorder_node": 20.0}
+
+
+@dataclass
+class LaunchOptions:
+    params_file: Optional[str] = None
+    record: Optional[str] = None
+    use_sim_time: bool = False
+    domain_id: Optional[int] = None
+    checkpoint: Optional[str] = None
+    nodes: tuple = ("mapper_node", "frontend_node")
+    extra_params: dict = field(default_factory=dict)   # "section.key" -> value (ROS -p overrides)
+    log_dir: Optional[str] = None
+
+
+def node_command(name: str, opt: LaunchOptions, extra: Optional[list] = None) -> list[str]:
+    """The command line of one node process (``python -m module [args] --ros-args ...``)."""
+    cmd = [sys.executable, "-m", NODES[name]] + list(extra or []) + ["--ros-args"]
+    if opt.params_file:
+        cmd += ["--params-file", str(opt.params_file)]
+    if opt.use_sim_time:
+        cmd += ["-p", "use_sim_time:=true"]
+    for k, v in opt.extra_params.items():
+        cmd += ["-p", f"{k}:={_ros_value(v)}"]
+    return cmd
+
+
+def _ros_value(v) -> str:
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    return str(v)
+
+
+class Launcher:
+    def __init__(self, opt: LaunchOptions, out: Optional[TextIO] = None) -> None:
+        self.opt = opt
+        self.out = out or sys.stderr
+        self.procs: dict[str, subprocess.Popen] = {}
+        self._stopping = False
+        if opt.params_file and not Path(opt.params_file).is_file():
+            raise ConfigError(f"{opt.params_file}: params file not found")
+        if opt.record and not str(opt.record).endswith(".mcap"):
+            raise ConfigError(f"--record {opt.record}: the output must be a .mcap file")
+        if opt.checkpoint:
+            opt.extra_params.setdefault("ros.checkpoint_path", str(Path(opt.checkpoint).resolve()))
+        self.env = ros_environment(opt.domain_id, log_dir=opt.log_dir)
+
+    def _say(self, text: str) -> None:
+        print(f"vings launch: {text}", file=self.out, flush=True)
+
+    def start(self) -> None:
+        self.snapshot = shm_snapshot()
+        names = list(self.opt.nodes) + (["recorder_node"] if self.opt.record else [])
+        for name in names:
+            extra = [str(Path(self.opt.record).resolve())] if name == "recorder_node" else []
+            cmd = node_command(name, self.opt, extra)
+            if name == "recorder_node":  # the recorder takes no stage parameters
+                cmd = [sys.executable, "-m", NODES[name]] + extra + ["--ros-args"] + \
+                    (["-p", "use_sim_time:=true"] if self.opt.use_sim_time else [])
+            self.procs[name] = subprocess.Popen(cmd, env=self.env, start_new_session=True)
+            self._say(f"started {name} (pid {self.procs[name].pid})")
+
+    def poll(self) -> Optional[str]:
+        """Name of a node that has exited, if any."""
+        for name, p in self.procs.items():
+            if p.poll() is not None:
+                return name
+        return None
+
+    def stop(self) -> None:
+        """Stop in order: front end, mapper, recorder; SIGINT, then SIGKILL after the timeout."""
+        if self._stopping:
+            return
+        self._stopping = True
+        for name in ("frontend_node", "mapper_node", "recorder_node"):
+            p = self.procs.get(name)
+            if p is None or p.poll() is not None:
+                continue
+            try:
+                os.killpg(p.pid, signal.SIGINT)
+            except ProcessLookupError:
+                continue
+            try:
+                p.wait(STOP_TIMEOUT_S[name])
+            except subprocess.TimeoutExpired:
+                self._say(f"{name} did not stop within {STOP_TIMEOUT_S[name]:.0f} s; killing it")
+                os.killpg(p.pid, signal.SIGKILL)
+                p.wait()
+        removed = cleanup_fastdds_shm(self.snapshot)
+        if removed:
+            self._say(f"removed {len(removed)} stale Fast DDS shared-memory files")
+
+    def run(self) -> int:
+        """Start, watch until a node dies or SIGINT/SIGTERM; returns the exit code."""
+        stop_requested = []
+
+        def _sig(signum, frame):  # noqa: ARG001
+            stop_requested.append(signum)
+
+        old = {s: signal.signal(s, _sig) for s in (signal.SIGINT, signal.SIGTERM)}
+        code = 0
+        try:
+            self.start()
+            while not stop_requested:
+                dead = self.poll()
+                if dead is not None:
+                    rc = self.procs[dead].returncode
+                    self._say(f"{dead} exited with code {rc}; stopping the graph")
+                    code = 1
+                    break
+                time.sleep(0.2)
+            if stop_requested:
+                self._say("shutting down")
+        finally:
+            self.stop()
+            for s, h in old.items():
+                signal.signal(s, h)
+        bad = {n: p.returncode for n, p in self.procs.items() if p.returncode not in (0, -2, 130)}
+        if bad and code == 0:
+            self._say(f"nodes exited with errors: {bad}")
+            code = 1
+        return code

@@ -1,0 +1,250 @@
+"""What every VINGS node shares: parameters -> stage configs, the input queue policy, the worker
+thread that runs the library, diagnostics, and a ``main`` that starts and stops cleanly.
+
+Threads: each node spins ONE ``SingleThreadedExecutor`` (rclpy's MultiThreadedExecutor is unusably
+slow in this version, see ../shared/STACK.md) for message I/O, and runs the heavy library work in one
+worker thread fed by a :class:`InputQueue`. Publishing from the worker is safe (rcl publishers are
+thread-safe); no callback ever blocks on the library.
+"""
+from __future__ import annotations
+
+import collections
+import dataclasses
+import logging
+import signal
+import sys
+import threading
+import time
+from dataclasses import dataclass
+from typing import Any, Callable, Generic, Optional, TypeVar
+
+from vings_core.config import ConfigError, config_from_dict
+from vings_core.errors import VingsError
+
+log = logging.getLogger("vings.node")
+
+T = TypeVar("T")
+QUEUE_POLICIES = ("keep_newest", "backpressure")
+
+
+@dataclass
+class NodeConfig:
+    """Node settings (params section ``ros``), shared by both nodes.
+
+    ``queue_policy``: ``keep_newest`` (live: the worker takes the newest waiting input, older ones
+    are dropped and counted) or ``backpressure`` (replay with ``--wait-for-graph``: nothing is
+    dropped; the queue holds up to ``queue_size`` items and the replay waits for acknowledgements).
+    ``calib_file``: calibration YAML used instead of the camera_info topic. ``width``/``height``:
+    working resolution the front end resizes/undistorts to (0 = as published).
+    ``checkpoint_path``: mapper checkpoint ("" = none); ``resume``: load it at start if it exists;
+    ``checkpoint_period_s``: seconds between periodic checkpoints (0 = only on shutdown).
+    ``points_period_s``: throttle of /vings/map/points. ``diagnostics_period_s``: /diagnostics rate.
+    """
+
+    world_frame: str = "map"
+    camera_frame: str = "camera_optical_frame"
+    queue_policy: str = "keep_newest"
+    queue_size: int = 64
+    calib_file: str = ""
+    width: int = 0
+    height: int = 0
+    path_max_poses: int = 10000
+    checkpoint_path: str = ""
+    resume: bool = True
+    checkpoint_period_s: float = 30.0
+    points_period_s: float = 2.0
+    max_points: int = 200000
+    diagnostics_period_s: float = 1.0
+    render_every_keyframes: int = 1
+
+    def validate(self) -> None:
+        if self.queue_policy not in QUEUE_POLICIES:
+            raise ValueError(f"queue_policy must be one of {QUEUE_POLICIES}, got {self.queue_policy!r}")
+        if self.queue_size < 1:
+            raise ValueError("queue_size must be >= 1")
+        if self.width < 0 or self.height < 0:
+            raise ValueError("width/height must be >= 0")
+
+
+KNOWN_SECTIONS = ("ros", "frontend", "mapping", "run")
+
+
+def node_sections(node) -> dict[str, dict]:
+    """The node's parameters (declared from the params file overrides) grouped by section:
+    ``{'frontend': {'window': 8, ...}, ...}``. Unknown sections are a :class:`ConfigError`."""
+    out: dict[str, dict] = {s: {} for s in KNOWN_SECTIONS}
+    for name, param in node._parameters.items():  # rclpy keeps declared parameters here
+        if name == "use_sim_time" or name.startswith("qos_overrides."):
+            continue
+        sec, _, key = name.partition(".")
+        if sec not in out or not key:
+            raise ConfigError(f"node {node.get_name()}: unknown parameter {name!r}; parameters live "
+                              f"in the sections {', '.join(KNOWN_SECTIONS)} (e.g. frontend.window)")
+        if "." in key:
+            raise ConfigError(f"node {node.get_name()}: parameter {name!r} is nested too deeply")
+        out[sec][key] = param.value
+    return out
+
+
+def section_config(cls, values: dict, where: str):
+    """Config dataclass from a params section; ROS turns YAML lists into arrays, undo that."""
+    fixed = {k: (list(v) if not isinstance(v, (str, bytes, bool, int, float)) and v is not None
+                 and hasattr(v, "__iter__") else v) for k, v in values.items()}
+    return config_from_dict(cls, fixed, where)
+
+
+class InputQueue(Generic[T]):
+    """Thread-safe input queue with the node's drop policy.
+
+    ``keep_newest``: ``get`` returns the newest item and drops (counts) every older one waiting.
+    ``backpressure``: FIFO, nothing dropped unless more than ``maxsize`` items wait (then the oldest
+    is dropped and counted: the sender ignored the back-pressure protocol).
+    """
+
+    def __init__(self, policy: str, maxsize: int = 64) -> None:
+        self.policy = policy
+        self._dq: collections.deque = collections.deque()
+        self._cv = threading.Condition()
+        self.maxsize = maxsize
+        self.dropped = 0
+        self.received = 0
+        self._closed = False
+
+    def put(self, item: T) -> None:
+        with self._cv:
+            self.received += 1
+            self._dq.append(item)
+            while len(self._dq) > self.maxsize:
+                self._dq.popleft()
+                self.dropped += 1
+            self._cv.notify()
+
+    def get(self, timeout: float = 0.1) -> Optional[T]:
+        with self._cv:
+            if not self._dq and not self._closed:
+                self._cv.wait(timeout)
+            if not self._dq:
+                return None
+            if self.policy == "keep_newest":
+                self.dropped += len(self._dq) - 1
+                item = self._dq.pop()
+                self._dq.clear()
+                return item
+            return self._dq.popleft()
+
+    def close(self) -> None:
+        with self._cv:
+            self._closed = True
+            self._cv.notify_all()
+
+    def __len__(self) -> int:
+        with self._cv:
+            return len(self._dq)
+
+
+class Worker:
+    """Runs ``step()`` in a loop on its own thread until stopped; an exception stops the node."""
+
+    def __init__(self, name: str, step: Callable[[], None], on_error: Callable[[BaseException], None]):
+        self._step, self._on_error = step, on_error
+        self._stop = threading.Event()
+        self.thread = threading.Thread(target=self._run, name=name, daemon=True)
+
+    def start(self) -> None:
+        self.thread.start()
+
+    def _run(self) -> None:
+        try:
+            while not self._stop.is_set():
+                self._step()
+        except BaseException as e:  # noqa: BLE001 - reported to the node, which exits non-zero
+            self._on_error(e)
+
+    def stop(self, timeout: float = 30.0) -> None:
+        self._stop.set()
+        if self.thread.is_alive():
+            self.thread.join(timeout)
+
+
+class RateMeter:
+    """Events per second over a sliding window of ``window_s`` seconds."""
+
+    def __init__(self, window_s: float = 5.0) -> None:
+        self.window_s = window_s
+        self._t: collections.deque = collections.deque()
+
+    def tick(self) -> None:
+        now = time.monotonic()
+        self._t.append(now)
+        while self._t and now - self._t[0] > self.window_s:
+            self._t.popleft()
+
+    @property
+    def hz(self) -> float:
+        if len(self._t) < 2:
+            return 0.0
+        return (len(self._t) - 1) / max(self._t[-1] - self._t[0], 1e-9)
+
+
+def rss_mb() -> float:
+    """Current resident set size of this process (MiB)."""
+    try:
+        with open("/proc/self/statm") as f:
+            import os
+            return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2 ** 20
+    except OSError:
+        return float("nan")
+
+
+def run_node(make_node: Callable[[], Any], args: Optional[list[str]] = None) -> int:
+    """Common ``main``: ROS environment, rclpy init, one SingleThreadedExecutor, clean shutdown on
+    SIGINT/SIGTERM (the node's ``shutdown()`` runs: final checkpoint etc.). Returns the exit code:
+    0 clean, 2 configuration/input error, 1 crash."""
+    import rclpy
+    from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+
+    from .ros_env import apply_ros_environment
+
+    logging.basicConfig(level=logging.INFO, format="[%(name)s] %(levelname)s %(message)s")
+    apply_ros_environment()
+    argv = list(sys.argv if args is None else args)
+    rclpy.init(args=argv, signal_handler_options=rclpy.signals.SignalHandlerOptions.NO)
+    stop = threading.Event()
+
+    def _sig(signum, frame):  # noqa: ARG001
+        stop.set()
+
+    signal.signal(signal.SIGINT, _sig)
+    signal.signal(signal.SIGTERM, _sig)
+    node = None
+    code = 0
+    try:
+        node = make_node()
+        ex = SingleThreadedExecutor()
+        ex.add_node(node)
+        while not stop.is_set() and rclpy.ok() and node.error is None:
+            ex.spin_once(timeout_sec=0.1)
+        if node.error is not None:
+            err = node.error
+            code = 2 if isinstance(err, VingsError) else 1
+            print(f"{node.get_name()}: error: {err}", file=sys.stderr)
+    except (VingsError, ValueError) as e:
+        print(f"vings node: error: {e}", file=sys.stderr)
+        code = 2
+    except ExternalShutdownException:
+        pass
+    finally:
+        if node is not None:
+            try:
+                node.shutdown()
+            except Exception as e:  # noqa: BLE001
+                print(f"{node.get_name()}: error during shutdown: {e}", file=sys.stderr)
+                code = code or 1
+            node.destroy_node()
+        if rclpy.ok():
+            rclpy.shutdown()
+    return code
+
+
+def config_summary(cfg: Any) -> str:
+    return ", ".join(f"{k}={v}" for k, v in dataclasses.asdict(cfg).items())

@@ -1,0 +1,101 @@
+"""``recorder_node``: records every VINGS output topic (serialized, as received) to one MCAP file.
+
+Messages are taken raw (CDR bytes, no deserialisation) and written with rosbags' rosbag2 writer
+(MCAP storage) into a temporary bag folder beside the target; on shutdown the ``.mcap`` is moved onto
+the target path atomically. ``vings launch --record OUT.mcap`` starts it.
+"""
+from __future__ import annotations
+
+import os
+import shutil
+import sys
+import tempfile
+import threading
+from pathlib import Path
+from typing import Optional
+
+from rclpy.node import Node
+
+from msg_adapters import topics as T
+
+from .frontend_node import FRONTEND_KEYFRAMES_TOPIC
+from .node_common import run_node
+
+#: (topic, ROS 2 type name, durability-latched?) of everything the graph publishes
+OUTPUT_TOPICS = [
+    (T.ODOMETRY_TOPIC, "nav_msgs/msg/Odometry", False),
+    (T.PATH_TOPIC, "nav_msgs/msg/Path", True),
+    (T.KEYFRAME_IMAGE_TOPIC, "sensor_msgs/msg/Image", False),
+    (T.KEYFRAME_DEPTH_TOPIC, "sensor_msgs/msg/Image", False),
+    (T.KEYFRAME_VAR_TOPIC, "sensor_msgs/msg/Image", False),
+    (T.KEYFRAME_POSE_TOPIC, "geometry_msgs/msg/PoseStamped", False),
+    (T.KEYFRAME_INFO_TOPIC, "sensor_msgs/msg/CameraInfo", False),
+    (FRONTEND_KEYFRAMES_TOPIC, "nav_msgs/msg/Path", True),
+    (T.RENDER_COLOR_TOPIC, "sensor_msgs/msg/Image", False),
+    (T.RENDER_DEPTH_TOPIC, "sensor_msgs/msg/Image", False),
+    (T.RENDER_NORMAL_TOPIC, "sensor_msgs/msg/Image", False),
+    (T.MAP_POINTS_TOPIC, "sensor_msgs/msg/PointCloud2", True),
+    (T.REFINED_KEYFRAMES_TOPIC, "nav_msgs/msg/Path", True),
+    (T.MARKERS_TOPIC, "visualization_msgs/msg/MarkerArray", True),
+    (T.DIAGNOSTICS_TOPIC, "diagnostic_msgs/msg/DiagnosticArray", False),
+]
+
+
+def _msg_class(type_name: str):
+    pkg, _, name = type_name.split("/")
+    mod = __import__(f"{pkg}.msg", fromlist=[name])
+    return getattr(mod, name)
+
+
+class RecorderNode(Node):
+    def __init__(self, out_path: str) -> None:
+        super().__init__("recorder_node")
+        from rosbags.rosbag2 import StoragePlugin, Writer
+        from rosbags.typesys import Stores, get_typestore
+
+        self.error: Optional[BaseException] = None
+        self.out = Path(out_path).resolve()
+        if self.out.suffix != ".mcap":
+            raise ValueError(f"--record {out_path}: the output must be a .mcap file")
+        self.out.parent.mkdir(parents=True, exist_ok=True)
+        self.tmpdir = Path(tempfile.mkdtemp(prefix=f".{self.out.name}.", dir=self.out.parent))
+        self.bagdir = self.tmpdir / self.out.stem
+        ts = get_typestore(Stores.ROS2_JAZZY)
+        self.writer = Writer(self.bagdir, version=9, storage_plugin=StoragePlugin.MCAP)
+        self.writer.open()
+        self.lock = threading.Lock()
+        self.counts: dict[str, int] = {}
+        for topic, type_name, latched in OUTPUT_TOPICS:
+            conn = self.writer.add_connection(topic, type_name, typestore=ts)
+            qos = T.latched_qos(1) if latched else T.sensor_qos(100)
+            self.create_subscription(_msg_class(type_name), topic,
+                                     lambda data, c=conn, t=topic: self._write(c, t, data), qos, raw=True)
+        self.get_logger().info(f"recording {len(OUTPUT_TOPICS)} topics to {self.out}")
+
+    def _write(self, conn, topic: str, data: bytes) -> None:
+        stamp = self.get_clock().now().nanoseconds
+        with self.lock:
+            self.writer.write(conn, stamp, data)
+            self.counts[topic] = self.counts.get(topic, 0) + 1
+
+    def shutdown(self) -> None:
+        with self.lock:
+            self.writer.close()
+        os.replace(self.bagdir / f"{self.bagdir.name}.mcap", self.out)
+        shutil.rmtree(self.tmpdir, ignore_errors=True)
+        total = sum(self.counts.values())
+        self.get_logger().info(f"recorded {total} messages on {len(self.counts)} topics to {self.out}")
+
+
+def main(args: Optional[list] = None) -> int:
+    argv = list(sys.argv if args is None else args)
+    ros_start = argv.index("--ros-args") if "--ros-args" in argv else len(argv)
+    plain = argv[1:ros_start]
+    if len(plain) != 1:
+        print("usage: recorder_node OUT.mcap [--ros-args ...]", file=sys.stderr)
+        return 2
+    return run_node(lambda: RecorderNode(plain[0]), argv)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
