@@ -1,0 +1,46 @@
+"""Exact conversions between ``int`` nanosecond stamps and ``builtin_interfaces/Time``.
+
+ROS time is ``sec`` (int32, any sign) plus ``nanosec`` in ``[0, 1e9)``; ``divmod`` keeps it exact for
+every stamp (no float rounding), including negative ones.
+"""
+from __future__ import annotations
+
+from builtin_interfaces.msg import Time
+from std_msgs.msg import Header
+
+from vings_core.errors import InputError
+
+NS_PER_S = 1_000_000_000
+_INT32_MIN, _INT32_MAX = -(2 ** 31), 2 ** 31 - 1
+
+
+def ns_to_time(stamp_ns: int, where: str = "stamp") -> Time:
+    """``int`` nanoseconds -> ``builtin_interfaces/Time`` (exact)."""
+    try:
+        ns = int(stamp_ns)
+    except (TypeError, ValueError):
+        raise InputError(f"{where}: stamp must be an integer number of nanoseconds, "
+                         f"got {stamp_ns!r}") from None
+    sec, nanosec = divmod(ns, NS_PER_S)
+    if not _INT32_MIN <= sec <= _INT32_MAX:
+        raise InputError(f"{where}: stamp {ns} ns does not fit builtin_interfaces/Time "
+                         f"(int32 seconds)")
+    return Time(sec=sec, nanosec=nanosec)
+
+
+def time_to_ns(t: Time, where: str = "stamp") -> int:
+    """``builtin_interfaces/Time`` (or anything with ``sec``/``nanosec``) -> ``int`` nanoseconds."""
+    sec, nanosec = int(t.sec), int(t.nanosec)
+    if not 0 <= nanosec < NS_PER_S:
+        raise InputError(f"{where}: nanosec field {nanosec} is outside [0, 1e9)")
+    return sec * NS_PER_S + nanosec
+
+
+def make_header(stamp_ns: int, frame_id: str, where: str = "header") -> Header:
+    """``std_msgs/Header`` with an exact stamp."""
+    return Header(stamp=ns_to_time(stamp_ns, f"{where}.stamp"), frame_id=str(frame_id))
+
+
+def header_ns(header: Header, where: str = "header") -> int:
+    """Stamp of a ``std_msgs/Header`` in nanoseconds."""
+    return time_to_ns(header.stamp, f"{where}.stamp")

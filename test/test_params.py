@@ -1,0 +1,56 @@
+"""The shipped params file matches the config dataclasses, and the nodes' section parsing."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+import yaml
+
+from vings_core.config import ConfigError, load_section, read_params_file
+from vings_ros.params import default_params_file, default_sections
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def test_shipped_params_file_has_every_field_and_nothing_else():
+    path = default_params_file()
+    assert path == REPO / "params" / "vings.yaml"
+    shipped = read_params_file(path)
+    defaults = default_sections()
+    assert set(shipped) == set(defaults)
+    for sec, vals in defaults.items():
+        assert set(shipped[sec]) == set(vals), f"section {sec} drifted from its dataclass"
+
+
+def test_every_section_loads_into_its_config():
+    from vings_core.frontend import FrontendConfig
+    from vings_core.mapping import MapperConfig
+    from vings_core.pipeline import RunConfig
+    from vings_ros.node_common import NodeConfig
+    path = default_params_file()
+    for cls, sec in ((FrontendConfig, "frontend"), (MapperConfig, "mapping"), (RunConfig, "run"),
+                     (NodeConfig, "ros")):
+        assert load_section(cls, sec, path) == cls()
+
+
+def test_invalid_values_are_named(tmp_path):
+    from vings_ros.node_common import NodeConfig
+    p = tmp_path / "p.yaml"
+    p.write_text(yaml.safe_dump({"/**": {"ros__parameters": {"ros": {"queue_policy": "newest"}}}}))
+    with pytest.raises(ConfigError, match="queue_policy must be one of"):
+        load_section(NodeConfig, "ros", p)
+    p.write_text(yaml.safe_dump({"/**": {"ros__parameters": {"ros": {"queue_polcy": "x"}}}}))
+    with pytest.raises(ConfigError, match=r"p.yaml: ros: unknown parameter 'queue_polcy'"):
+        load_section(NodeConfig, "ros", p)
+
+
+def test_input_queue_policies():
+    from vings_ros.node_common import InputQueue
+    q = InputQueue("keep_newest")
+    for i in range(5):
+        q.put(i)
+    assert q.get(0) == 4 and q.dropped == 4 and q.get(0) is None
+    b = InputQueue("backpressure", maxsize=3)
+    for i in range(4):
+        b.put(i)
+    assert [b.get(0) for _ in range(3)] == [1, 2, 3] and b.dropped == 1

@@ -1,0 +1,467 @@
+"""Replay any recording on the live input topics: ``vings replay SOURCE``.
+
+Reads a :class:`vings_core.io.Source` (EuRoC/TUM/KITTI folder, ROS 1/2 bag, MCAP) and publishes, with
+the recording's ORIGINAL stamps:
+
+* ``/camera/image_raw`` (sensor_msgs/Image, rgb8 or mono8, undistorted, working resolution),
+* ``/camera/camera_info`` (CameraInfo of those images, same stamp as each image, sent just before it),
+* ``/imu/data`` (sensor_msgs/Imu, body frame),
+* ``/clock`` (rosgraph_msgs/Clock) at sensor time, before every message that advances it,
+
+paced at ``rate`` x real time (``rate = 0``: as fast as possible). Frames of the window
+``[first frame + start_s, + duration_s]`` are published, and IMU samples from ``imu_lead_s`` before
+the first of them up to the last (IMU-only stretches at the ends of a recording are skipped).
+
+Start-up: waits until the image publisher is matched with a subscriber (then up to
+:data:`ENDPOINT_GRACE_S` more for the IMU / camera-info subscribers of the same node), at most
+``startup_timeout_s``.
+
+Back-pressure (``wait_for_graph``): after each image the replay waits until a std_msgs/Header with a
+stamp >= that image's stamp arrives on ``/vings/frontend/processed``. The front-end node implements it
+by republishing the header of every image it has finished with (processed or deliberately skipped)::
+
+    self._processed = self.create_publisher(Header, "/vings/frontend/processed", 100)
+    ...                                   # at the end of the image callback / processing step:
+    self._processed.publish(image_msg.header)
+
+The replay waits at start for that publisher, raises :class:`GraphTimeout` if no acknowledgement
+comes within ``ack_timeout_s`` or the acknowledging publisher disappears, and otherwise publishes
+every frame, so nothing is dropped however slow the graph is. Pacing is re-anchored at every
+image that goes out more than 20 ms late, so a slow graph (or slow decoding) slows the replay
+without bursts afterwards: an image goes out at max(previous image + its period / rate,
+acknowledgement of the previous image).
+
+One node, one :class:`SingleThreadedExecutor`, all in the calling thread.
+"""
+from __future__ import annotations
+
+import logging
+import math
+import sys
+import time
+from dataclasses import asdict, dataclass, field
+from typing import Callable, Optional, TextIO
+
+from vings_core.errors import ConfigError, VingsError
+from vings_core.types import Frame, ImuSample
+
+from msg_adapters import topics as T
+
+log = logging.getLogger("vings.replay")
+
+ENDPOINT_GRACE_S = 1.0
+LAG_TOLERANCE_S = 0.02  # an image later than this behind schedule re-anchors the pacing
+FLUSH_TIMEOUT_S = 4.0  # at the end, wait this long at most for reliable readers to confirm
+
+
+class GraphTimeout(VingsError):
+    """The ROS graph did not show up or stopped acknowledging frames."""
+
+
+@dataclass
+class ReplayOptions:
+    """How to replay. Times in seconds. Frames with stamps in ``[first frame + start_s,
+    + duration_s]`` are published; IMU samples from ``imu_lead_s`` before the first published frame
+    up to the last published frame (IMU-only stretches at either end of a recording are skipped)."""
+
+    rate: float = 1.0
+    topics: dict = field(default_factory=lambda: dict(T.REPLAY_TOPICS))
+    wait_for_graph: bool = False
+    wait_subscribers: bool = True
+    startup_timeout_s: float = 30.0
+    ack_timeout_s: float = 60.0
+    loop: bool = False
+    start_s: float = 0.0
+    duration_s: Optional[float] = None
+    imu_lead_s: float = 1.0
+    camera_frame: str = T.CAMERA_FRAME
+    imu_frame: str = T.IMU_FRAME
+    publish_clock: bool = True
+    progress_period_s: float = 2.0
+    node_name: str = "vings_replay"
+    publish_log: Optional[str] = None  # CSV "stamp_ns,wall_ns" of every image (for latency)
+
+    def validate(self) -> None:
+        if not (self.rate >= 0 and math.isfinite(self.rate)):
+            raise ConfigError(f"--rate must be >= 0 (0 = as fast as possible), got {self.rate}")
+        if self.start_s < 0:
+            raise ConfigError(f"--start must be >= 0 s, got {self.start_s}")
+        if self.duration_s is not None and self.duration_s <= 0:
+            raise ConfigError(f"--duration must be > 0 s, got {self.duration_s}")
+        if not self.imu_lead_s >= 0:
+            raise ConfigError(f"--imu-lead must be >= 0 s, got {self.imu_lead_s}")
+        if self.ack_timeout_s <= 0 or self.startup_timeout_s < 0:
+            raise ConfigError("--ack-timeout must be > 0 and --startup-timeout >= 0")
+        unknown = set(self.topics) - set(T.REPLAY_TOPICS)
+        if unknown:
+            raise ConfigError(f"--topics: unknown key(s) {sorted(unknown)}; known: "
+                              f"{', '.join(T.REPLAY_TOPICS)}")
+        for k, v in self.topics.items():
+            if not isinstance(v, str) or not v.startswith("/") or " " in v:
+                raise ConfigError(f"--topics: topic for {k!r} must be an absolute ROS name, got {v!r}")
+        full = dict(T.REPLAY_TOPICS)
+        full.update(self.topics)
+        self.topics = full
+
+
+def parse_topics(spec: str) -> dict:
+    """``"image=/cam/img,imu=/imu0"`` -> ``{"image": "/cam/img", "imu": "/imu0"}`` (ConfigError if bad)."""
+    out = {}
+    for part in (p.strip() for p in spec.split(",")):
+        if not part:
+            continue
+        key, sep, val = part.partition("=")
+        if not sep or not key.strip() or not val.strip():
+            raise ConfigError(f"--topics entry {part!r} must look like key=/topic "
+                              f"(keys: {', '.join(T.REPLAY_TOPICS)})")
+        out[key.strip()] = val.strip()
+    return out
+
+
+@dataclass
+class ReplayStats:
+    images: int = 0
+    imu: int = 0
+    camera_info: int = 0
+    clock: int = 0
+    acks: int = 0
+    loops: int = 0
+    first_stamp_ns: Optional[int] = None
+    last_stamp_ns: Optional[int] = None
+    wall_s: float = 0.0
+    sensor_s: float = 0.0
+    achieved_rate: Optional[float] = None
+    image_rate_hz: Optional[float] = None
+    ack_wait_mean_ms: Optional[float] = None
+    ack_wait_max_ms: Optional[float] = None
+    startup_wait_s: float = 0.0
+    interrupted: bool = False
+
+    def as_dict(self) -> dict:
+        return asdict(self)
+
+    def summary(self) -> str:
+        rate = f"x{self.achieved_rate:.2f} real time" if self.achieved_rate else "n/a"
+        hz = f"{self.image_rate_hz:.1f} Hz" if self.image_rate_hz else "n/a"
+        s = (f"replay: published {self.images} images, {self.camera_info} camera_info, {self.imu} "
+             f"imu, {self.clock} clock in {self.wall_s:.2f} s wall for {self.sensor_s:.2f} s of "
+             f"sensor time ({rate}, images {hz})")
+        if self.interrupted:
+            s += " (interrupted)"
+        if self.acks:
+            s += (f"; {self.acks} acks, wait mean {self.ack_wait_mean_ms:.1f} ms, max "
+                  f"{self.ack_wait_max_ms:.1f} ms")
+        return s
+
+
+class Replayer:
+    """Publishes one :class:`Source` on the input topics (see the module docstring).
+
+    ``Replayer(source, options).run()`` initialises its own rclpy context, so it can share a
+    process with other nodes; call it from the thread that should block.
+    """
+
+    def __init__(self, source, options: Optional[ReplayOptions] = None,
+                 out: Optional[TextIO] = None,
+                 on_image: Optional[Callable[[int], None]] = None) -> None:
+        self.source = source
+        self.opt = options or ReplayOptions()
+        self.opt.validate()
+        self.out = out if out is not None else sys.stderr
+        self.on_image = on_image
+        self.stats = ReplayStats()
+        self._acked = -1 << 63
+        self._ack_waits: list[float] = []
+
+    # ------------------------------------------------------------------------------- set-up
+    def _setup(self) -> None:
+        import rclpy
+        from rclpy.executors import SingleThreadedExecutor
+        from rclpy.signals import SignalHandlerOptions
+        from rosgraph_msgs.msg import Clock
+        from sensor_msgs.msg import CameraInfo, Image, Imu
+        from std_msgs.msg import Header
+
+        self._ctx = rclpy.Context()
+        # no rclpy signal handlers: Ctrl-C raises KeyboardInterrupt here and we clean up
+        rclpy.init(context=self._ctx, signal_handler_options=SignalHandlerOptions.NO)
+        self.node = rclpy.create_node(self.opt.node_name, context=self._ctx,
+                                      start_parameter_services=False)
+        self.executor = SingleThreadedExecutor(context=self._ctx)
+        self.executor.add_node(self.node)
+        tp = self.opt.topics
+        self.pub_image = self.node.create_publisher(Image, tp["image"], T.image_qos())
+        self.pub_info = self.node.create_publisher(CameraInfo, tp["camera_info"],
+                                                   T.camera_info_qos())
+        self.pub_imu = self.node.create_publisher(Imu, tp["imu"], T.imu_qos())
+        self.pub_clock = (self.node.create_publisher(Clock, tp["clock"], T.clock_qos())
+                          if self.opt.publish_clock else None)
+        self.sub_ack = None
+        if self.opt.wait_for_graph:
+            self.sub_ack = self.node.create_subscription(Header, tp["processed"], self._on_ack,
+                                                         T.ack_qos())
+        self._Clock = Clock
+
+    def _teardown(self) -> None:
+        ctx = getattr(self, "_ctx", None)
+        if ctx is None:
+            return
+        try:
+            from rclpy.duration import Duration
+            if ctx.ok():
+                deadline = time.monotonic() + FLUSH_TIMEOUT_S
+                for p in (self.pub_info, self.pub_imu, self.pub_image, self.pub_clock):
+                    if p is None:
+                        continue
+                    # let reliable readers fetch what is still in flight before the writer goes
+                    left = max(0.0, deadline - time.monotonic())
+                    if not p.wait_for_all_acked(Duration(nanoseconds=int(left * 1e9))):
+                        log.warning("replay: not every subscriber of %s confirmed the last "
+                                    "messages within %.0f s", p.topic_name, FLUSH_TIMEOUT_S)
+        except Exception as e:  # pragma: no cover - best effort on shutdown
+            log.debug("wait_for_all_acked failed: %s", e)
+        finally:
+            try:
+                self.executor.shutdown(timeout_sec=1.0)
+                self.node.destroy_node()
+            finally:
+                if ctx.ok():
+                    ctx.try_shutdown()
+                self._ctx = None
+
+    def _on_ack(self, msg) -> None:
+        from msg_adapters.stamps import header_ns
+        self._acked = max(self._acked, header_ns(msg, self.opt.topics["processed"]))
+
+    # -------------------------------------------------------------------------------- waits
+    def _spin_for(self, seconds: float) -> None:
+        self.executor.spin_once(timeout_sec=max(0.0, seconds))
+
+    def _spin_until(self, wall_target: float) -> None:
+        while True:
+            rem = wall_target - time.monotonic()
+            if rem <= 0:
+                return
+            self._spin_for(min(rem, 0.05))
+
+    def _wait_startup(self) -> None:
+        if not self.opt.wait_subscribers and not self.opt.wait_for_graph:
+            return
+        t0 = time.monotonic()
+        deadline = t0 + self.opt.startup_timeout_s
+        tp = self.opt.topics
+
+        def ready() -> bool:
+            if self.pub_image.get_subscription_count() < 1:
+                return False
+            return self.sub_ack is None or self.sub_ack.get_publisher_count() >= 1
+
+        announced = False
+        while not ready():
+            if time.monotonic() >= deadline:
+                what = []
+                if self.pub_image.get_subscription_count() < 1:
+                    what.append(f"nothing subscribes to {tp['image']}")
+                if self.sub_ack is not None and self.sub_ack.get_publisher_count() < 1:
+                    what.append(f"nothing publishes the front end's acknowledgements "
+                                f"(std_msgs/Header) on {tp['processed']}")
+                msg = (f"after {self.opt.startup_timeout_s:g} s {' and '.join(what)}; is the "
+                       f"graph running, with the same ROS_DOMAIN_ID?")
+                if self.opt.wait_for_graph:
+                    raise GraphTimeout(msg)
+                self._print(f"replay: warning: {msg} Publishing anyway.")
+                self.stats.startup_wait_s = time.monotonic() - t0
+                return
+            if not announced and time.monotonic() - t0 > 1.0:
+                self._print(f"replay: waiting for subscribers on {tp['image']}"
+                            + (f" and acknowledgements on {tp['processed']}"
+                               if self.sub_ack is not None else "") + " ...")
+                announced = True
+            self._spin_for(0.05)
+        # the other endpoints of the same node are discovered together; allow a little time
+        grace = time.monotonic() + ENDPOINT_GRACE_S
+        others = [self.pub_info] + ([self.pub_imu] if self._has_imu else [])
+        while time.monotonic() < grace and any(p.get_subscription_count() < 1 for p in others):
+            self._spin_for(0.02)
+        self.stats.startup_wait_s = time.monotonic() - t0
+
+    def _wait_ack(self, stamp_ns: int) -> None:
+        t0 = time.monotonic()
+        deadline = t0 + self.opt.ack_timeout_s
+        next_check = t0 + 1.0
+        while self._acked < stamp_ns:
+            now = time.monotonic()
+            if now >= deadline:
+                raise GraphTimeout(
+                    f"no acknowledgement of the image stamped {stamp_ns} on "
+                    f"{self.opt.topics['processed']} within {self.opt.ack_timeout_s:g} s (the "
+                    f"front end publishes each processed image's header there); raise "
+                    f"--ack-timeout if the graph is just slow")
+            if now >= next_check:
+                next_check = now + 1.0
+                if self.sub_ack.get_publisher_count() < 1:
+                    raise GraphTimeout(f"the publisher of {self.opt.topics['processed']} "
+                                       f"went away while waiting for image {stamp_ns} (did the "
+                                       f"front-end node die?)")
+            self._spin_for(min(deadline - now, 0.05))
+        self._ack_waits.append(time.monotonic() - t0)
+        self.stats.acks += 1
+
+    # ------------------------------------------------------------------------------ publish
+    def _print(self, line: str) -> None:
+        print(line, file=self.out, flush=True)
+
+    def _publish_clock(self, stamp_ns: int) -> None:
+        if self.pub_clock is None or stamp_ns <= self._last_clock:
+            return
+        from msg_adapters.stamps import ns_to_time
+        self.pub_clock.publish(self._Clock(clock=ns_to_time(stamp_ns, self.opt.topics["clock"])))
+        self._last_clock = stamp_ns
+        self.stats.clock += 1
+
+    def _publish_frame(self, f: Frame) -> None:
+        from msg_adapters.camera_info import camera_to_camera_info
+        from msg_adapters.image import frame_to_msg
+        from msg_adapters.stamps import ns_to_time
+
+        tp = self.opt.topics
+        if self._info_msg is None:
+            self._info_msg = camera_to_camera_info(self.source.calibration.camera, f.stamp_ns,
+                                                   self.opt.camera_frame, tp["camera_info"])
+        self._info_msg.header.stamp = ns_to_time(f.stamp_ns, tp["camera_info"])
+        self.pub_info.publish(self._info_msg)
+        self.stats.camera_info += 1
+        msg = frame_to_msg(f, self.opt.camera_frame, tp["image"])
+        self._pub_log.append((f.stamp_ns, time.time_ns()))
+        self.pub_image.publish(msg)
+        self.stats.images += 1
+
+    def _publish_imu(self, s: ImuSample) -> None:
+        from msg_adapters.imu import imu_sample_to_msg
+        self.pub_imu.publish(imu_sample_to_msg(s, self.opt.imu_frame, self._gyro_var,
+                                               self._accel_var, self.opt.topics["imu"]))
+        self.stats.imu += 1
+
+    # ---------------------------------------------------------------------------------- run
+    def _plan(self) -> None:
+        """The frame window: first and last published frame, first IMU stamp, frame count."""
+        import numpy as np
+        fs = np.asarray(self.source.frame_stamps(), dtype=np.int64)
+        if len(fs) == 0:
+            raise ConfigError(f"{self.source.path}: the recording has no camera frames")
+        lo = int(fs[0]) + int(round(self.opt.start_s * 1e9))
+        sel = fs[fs >= lo]
+        if self.opt.duration_s is not None:
+            sel = sel[sel <= lo + int(round(self.opt.duration_s * 1e9))]
+        if len(sel) == 0:
+            raise ConfigError(f"no frames in the selected window of {self.source.path} (--start "
+                              f"{self.opt.start_s:g} s, --duration {self.opt.duration_s}; the "
+                              f"recording has {(fs[-1] - fs[0]) * 1e-9:.2f} s of frames)")
+        self._f_first, self._f_last = int(sel[0]), int(sel[-1])
+        self._imu_first = self._f_first - int(round(self.opt.imu_lead_s * 1e9))
+        self._n_frames = int(len(sel))
+
+    def _play_once(self, wall0: float) -> None:
+        rate = self.opt.rate
+        anchor: Optional[tuple[float, int]] = None
+        total = self._n_frames
+        next_progress = time.monotonic() + self.opt.progress_period_s
+        self._acked = -1 << 63
+        self._last_clock = -1 << 63
+        self._sensor_ns_pass = 0
+        n_img_pass = 0
+        pass_first: Optional[int] = None
+        for item in self.source.stream():
+            stamp = int(item.stamp_ns)
+            is_frame = isinstance(item, Frame)
+            if stamp > self._f_last:
+                break
+            if stamp < (self._f_first if is_frame else self._imu_first):
+                continue
+            if rate > 0:
+                if anchor is None:
+                    anchor = (time.monotonic(), stamp)
+                ideal = anchor[0] + (stamp - anchor[1]) * 1e-9 / rate
+                self._spin_until(ideal)
+                if is_frame and time.monotonic() - ideal > LAG_TOLERANCE_S:
+                    # behind schedule (slow graph or slow decoding): continue from here rather
+                    # than bursting to catch up
+                    anchor = (time.monotonic(), stamp)
+            self._publish_clock(stamp)
+            if is_frame:
+                self._publish_frame(item)
+                n_img_pass += 1
+                if self.on_image is not None:
+                    self.on_image(stamp)
+                if self.opt.wait_for_graph:
+                    self._wait_ack(stamp)
+                elif rate == 0 and n_img_pass % 10 == 0:
+                    self._spin_for(0.0)
+            else:
+                self._publish_imu(item)
+            if self.stats.first_stamp_ns is None:
+                self.stats.first_stamp_ns = stamp
+            self.stats.last_stamp_ns = stamp
+            if pass_first is None:
+                pass_first = stamp
+            self._sensor_ns_pass = stamp - pass_first
+            now = time.monotonic()
+            if now >= next_progress:
+                next_progress = now + self.opt.progress_period_s
+                self._print(f"replay: {n_img_pass}/{total} images (loop {self.stats.loops + 1}), "
+                            f"{self.stats.imu} imu, t = {(stamp - self._f_first) * 1e-9:.2f} s, "
+                            f"wall {now - wall0:.1f} s")
+        self._sensor_ns += self._sensor_ns_pass
+        self._sensor_ns_pass = 0
+        self.stats.loops += 1
+
+    def run(self) -> ReplayStats:
+        """Publish the recording (until done, or until Ctrl-C with ``loop``); returns statistics.
+
+        Ctrl-C (KeyboardInterrupt) stops cleanly: ``stats.interrupted`` is set and the statistics
+        so far are returned.
+        """
+        self._info_msg = None
+        self._sensor_ns = 0
+        self._pub_log: list[tuple[int, int]] = []
+        self._has_imu = bool(self.source.calibration.has_imu or self.source.imu_samples())
+        from msg_adapters.imu import imu_variances
+        self._gyro_var, self._accel_var = imu_variances(self.source.calibration)
+        self._plan()
+        wall0 = None
+        try:
+            self._setup()
+            self._wait_startup()
+            wall0 = time.monotonic()
+            while True:
+                self._play_once(wall0)
+                if not self.opt.loop:
+                    break
+        except KeyboardInterrupt:
+            self.stats.interrupted = True
+        finally:
+            wall = time.monotonic() - wall0 if wall0 is not None else 0.0
+            self._teardown()
+        st = self.stats
+        st.wall_s = wall
+        self._sensor_ns += getattr(self, "_sensor_ns_pass", 0)  # an interrupted pass
+        self._sensor_ns_pass = 0
+        st.sensor_s = self._sensor_ns * 1e-9
+        if wall > 0 and st.sensor_s > 0:
+            st.achieved_rate = st.sensor_s / wall
+        if wall > 0 and st.images > 1:
+            st.image_rate_hz = st.images / wall
+        if self._ack_waits:
+            st.ack_wait_mean_ms = 1e3 * sum(self._ack_waits) / len(self._ack_waits)
+            st.ack_wait_max_ms = 1e3 * max(self._ack_waits)
+        if self.opt.publish_log:
+            from vings_core.util import atomic_write_text
+            atomic_write_text(self.opt.publish_log, "# stamp_ns,publish_wall_ns\n" + "".join(
+                f"{s},{w}\n" for s, w in self._pub_log))
+        return st
+
+
+def replay(source, options: Optional[ReplayOptions] = None,
+           out: Optional[TextIO] = None) -> ReplayStats:
+    """Publish ``source`` on the input topics; see :class:`Replayer`."""
+    return Replayer(source, options, out).run()
