@@ -88,6 +88,16 @@ def test_launch_replay_backpressure_end_to_end(synthetic_mcap, tmp_path):
     ex.add_node(node)
     replay = None
     try:
+        # the listener must be matched with the graph's publishers before any frame is replayed
+        ready = time.monotonic() + 120
+        while time.monotonic() < ready and (node.count_publishers(T.ODOMETRY_TOPIC) < 1 or
+                                            node.count_publishers(T.RENDER_COLOR_TOPIC) < 1):
+            ex.spin_once(timeout_sec=0.1)
+            assert launcher.poll() is None, f"graph died:\n{launcher.communicate()[0][-3000:]}"
+        assert node.count_publishers(T.ODOMETRY_TOPIC) >= 1, "front end never came up"
+        end = time.monotonic() + 1.0
+        while time.monotonic() < end:
+            ex.spin_once(timeout_sec=0.05)
         replay = subprocess.Popen(
             [sys.executable, "-m", "vings_ros.cli", "replay", str(synthetic_mcap), "--rate", "0",
              "--wait-for-graph", "--domain-id", str(domain), "--ack-timeout", "120",

@@ -67,6 +67,8 @@ class NodeConfig:
 
 
 KNOWN_SECTIONS = ("ros", "frontend", "mapping", "run")
+#: parameters rclpy declares on every node
+BUILTIN_PARAMETERS = ("use_sim_time", "start_type_description_service")
 
 
 def node_sections(node) -> dict[str, dict]:
@@ -74,7 +76,7 @@ def node_sections(node) -> dict[str, dict]:
     ``{'frontend': {'window': 8, ...}, ...}``. Unknown sections are a :class:`ConfigError`."""
     out: dict[str, dict] = {s: {} for s in KNOWN_SECTIONS}
     for name, param in node._parameters.items():  # rclpy keeps declared parameters here
-        if name == "use_sim_time" or name.startswith("qos_overrides."):
+        if name in BUILTIN_PARAMETERS or name.startswith("qos_overrides."):
             continue
         sec, _, key = name.partition(".")
         if sec not in out or not key:
