@@ -20,7 +20,9 @@ $(STAMP): requirements.txt setup.py setup.cfg
 install: $(STAMP)
 
 demo: $(STAMP)
-	$(VENV)/bin/vings demo --out $(DEMO_OUT)
+	$(VENV)/bin/vings sim --scene room --frames 120 --out $(DEMO_OUT)/room
+	$(VENV)/bin/vings run $(DEMO_OUT)/room --out $(DEMO_OUT)/run --sync
+	@echo "demo outputs: $(DEMO_OUT)/run (trajectory.tum, keyframes.tum, map.ply, metrics.json, renders/)"
 
 test: $(STAMP)
 	$(VPY) -m pytest -q $(PYTEST_ARGS)
