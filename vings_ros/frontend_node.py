@@ -56,6 +56,7 @@ class FrontendNode(Node):
         self.rate = RateMeter()
         self.imu_count = 0
         self.frames_without_camera = 0
+        self.bad_frames = 0
         self.last_state = "waiting"
         self._sent_kf: dict[int, np.ndarray] = {}
         if self.ncfg.calib_file:
@@ -130,7 +131,13 @@ class FrontendNode(Node):
                                           f"ros.calib_file): {self.frames_without_camera} images skipped")
             self._ack(msg.header)
             return
-        frame = self.decoder(msg, self.raw_camera)
+        try:
+            frame = self.decoder(msg, self.raw_camera)
+        except InputError as e:  # a bad message is reported and skipped, the node keeps running
+            self.bad_frames += 1
+            self.get_logger().warning(f"skipped image {stamp}: {e}")
+            self._ack(msg.header)
+            return
         frame = Frame(stamp, self.undist(frame.image), self.undist.camera)
         with self._lock:
             refined, self._refined = self._refined, {}
@@ -193,7 +200,8 @@ class FrontendNode(Node):
         values = {"reason": st.get("reason", ""), "frames": st.get("frames", 0),
                   "keyframes": st.get("keyframes", 0), "rate_hz": self.rate.hz,
                   "queue_length": len(self.queue), "queue_policy": self.queue.policy,
-                  "dropped_frames": self.queue.dropped, "received_frames": self.queue.received,
+                  "frames_dropped": self.queue.dropped, "frames_received": self.queue.received,
+                  "bad_frames": self.bad_frames,
                   "imu_samples": self.imu_count, "rss_mb": rss_mb()}
         stamp = self.get_clock().now().nanoseconds
         self.pub_diag.publish(diagnostic_array(stamp, [tracking_status(
