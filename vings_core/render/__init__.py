@@ -1,0 +1,33 @@
+"""Differentiable 2D Gaussian Splatting (2DGS) rasterizer for the CPU (numba), with the
+VINGS-Mono sample-based backward pass, a pure-torch reference and an optional gsplat route.
+
+Public API (see docs/rasterizer.md)::
+
+    out = rasterize_2dgs(means, quats, scales, opacities, colors, T_cw, camera,
+                         sh_degree=None, pose_delta=None, background=None,
+                         sample_ratio=1.0, loss_map=None, near=0.01, far=1e3)
+    out.color, out.depth, out.normal, out.alpha, out.distortion      # (H, W[, 3])
+    out.radii, out.pixels_touched, out.contribution, out.error       # (N,)
+    scores = gaussian_scores(means, quats, scales, opacities, colors, T_cw, camera, loss_map)
+"""
+from .rasterize import RenderOutput, gaussian_scores, rasterize_2dgs
+from .reference import render_reference
+from .sh import eval_sh, num_sh_bases, rgb_to_sh0, sh_to_color
+
+__all__ = ["RenderOutput", "rasterize_2dgs", "gaussian_scores", "render_reference", "eval_sh",
+           "sh_to_color", "rgb_to_sh0", "num_sh_bases", "select_sample_pixels"]
+
+
+def select_sample_pixels(score, ratio: float):
+    """``(H, W)`` bool mask of the pixels the sampled backward keeps: per 16x16 tile the
+    ``ceil(ratio * n)`` highest-``score`` pixels (ties: lower row-major index first)."""
+    import numpy as np
+    import torch
+
+    from .kernels import select_pixels
+    s = score.detach().cpu().numpy() if torch.is_tensor(score) else np.asarray(score)
+    s = np.ascontiguousarray(s, dtype=np.float64)
+    sel = np.ones(s.shape, np.uint8)
+    if ratio < 1.0:
+        select_pixels(s, float(ratio), sel)
+    return torch.from_numpy(sel.astype(bool))
