@@ -180,3 +180,11 @@ def test_cli_help_lists_and_errors(capsys):
     assert main([]) == 1
     out = capsys.readouterr().out
     assert "usage: vings" in out
+
+
+def test_se3_exp_gradient_finite_at_zero():
+    xi = torch.zeros(6, dtype=torch.float64, requires_grad=True)
+    T = G.se3_exp(xi)
+    (T[:3, 3].sum() + T[:3, :3].sum()).backward()
+    assert torch.all(torch.isfinite(xi.grad))
+    assert torch.allclose(xi.grad[:3], torch.ones(3, dtype=torch.float64))

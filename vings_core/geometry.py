@@ -28,9 +28,9 @@ def skew(v: torch.Tensor) -> torch.Tensor:
 
 def _so3_coeffs(theta2: torch.Tensor):
     """A = sin(t)/t, B = (1-cos t)/t^2, C = (t - sin t)/t^3 with Taylor series near 0."""
-    theta = torch.sqrt(theta2.clamp_min(0))
     small = theta2 < 1e-8
-    ts = torch.where(small, torch.ones_like(theta), theta)
+    # sqrt of a safe argument: keeps autograd finite at theta = 0 (the Taylor branch is used there)
+    ts = torch.sqrt(torch.where(small, torch.ones_like(theta2), theta2))
     A = torch.where(small, 1 - theta2 / 6, torch.sin(ts) / ts)
     B = torch.where(small, 0.5 - theta2 / 24, (1 - torch.cos(ts)) / ts**2)
     C = torch.where(small, 1.0 / 6 - theta2 / 120, (ts - torch.sin(ts)) / ts**3)
