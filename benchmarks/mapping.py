@@ -1,0 +1,377 @@
+"""Mapping benchmark (issue 5): quality, score manager, pose refinement, storage tiers, speed.
+
+Synthetic scenes come from ``vings_core.sim`` (the scenes ``vings sim`` writes), rendered in memory
+with ground-truth poses and depth; keyframes are every ``--kf-every``-th frame and get
+``inv_depth_var = 0`` (certain depth).
+
+Experiments (``--exp``, comma separated; default all):
+
+* ``room``: room, >= 200 frames at 376x240, GT poses + depth: PSNR/SSIM on keyframes and on novel
+  (non-keyframe) views, Gaussian count, mapping time per keyframe.
+* ``score``: score-manager ablation (manager off, several ``sc_storage``): Gaussian count and PSNR.
+* ``pose``: pose-refinement ablation from GT + injected noise (2 cm, 1 deg on every keyframe but the
+  first, which fixes the gauge): keyframe ATE with no refinement / rendered pose only / all visible
+  keyframes (single-to-multi).
+* ``storage``: street --loop drive (>= 300 m), few iterations per keyframe: active set vs cap, total
+  count, passive store spill, peak RSS, PSNR of the start region at first visit and after the loop.
+* ``timing``: mapping time per keyframe at 376x240 with 50 iterations, split in add/train.
+
+Prints progress to stderr and ONE JSON object (keyed by experiment) as the last stdout line.
+``--quick`` shrinks everything for development (numbers are then not the reported ones).
+"""
+from __future__ import annotations
+
+import os
+
+# numba's OpenMP pool busy-waits after each parallel region by default; on 2 shared cores that steals
+# the CPU from the torch ops between kernels (measured 2-3x slower steps). Must precede the imports.
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
+import argparse  # noqa: E402
+import json  # noqa: E402
+import math  # noqa: E402
+import resource  # noqa: E402
+import sys  # noqa: E402
+import time  # noqa: E402
+from dataclasses import replace  # noqa: E402
+
+import numpy as np  # noqa: E402
+import torch  # noqa: E402
+
+from vings_core.eval.image import psnr, ssim  # noqa: E402
+from vings_core.geometry import np_se3_exp, rotation_angle_deg  # noqa: E402
+from vings_core.mapping import Mapper, MapperConfig  # noqa: E402
+from vings_core.types import Keyframe  # noqa: E402
+
+FPS = 20.0
+T0_NS = 1_700_000_000_000_000_000
+
+
+def log(*a) -> None:
+    print("[bench mapping]", *a, file=sys.stderr, flush=True)
+
+
+def peak_rss_mb() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+# ------------------------------------------------------------------------------------ data
+
+
+class SimSequence:
+    """Frames of a simulator scene rendered on demand (cached), with GT camera poses and depth."""
+
+    def __init__(self, scene_name: str, frames: int | None, width: int, height: int, seed: int = 0,
+                 loop: bool = False, length_m: float | None = None, cache: bool = True):
+        self.cache = cache
+        from vings_core import sim
+        self.sim = sim
+        self.scene = sim.build_scene(scene_name, seed=seed, loop=loop, length_m=length_m, fps=FPS)
+        self.cam = sim.default_camera(width, height)
+        if frames is None:
+            frames = int(math.floor(self.scene.motion.duration * FPS)) + 1
+        self.n = int(frames)
+        self.t = np.arange(self.n) / FPS
+        self.T_wc = self.scene.T_wc(self.t)
+        self.stamps = T0_NS + np.round(self.t * 1e9).astype(np.int64)
+        self._cache: dict[int, tuple] = {}
+
+    def view(self, i: int, keep: bool = False):
+        if i in self._cache:
+            return self._cache[i]
+        rgb, depth, _ = self.sim.render_view(self.scene, self.cam, self.T_wc[i], t=float(self.t[i]))
+        if self.cache or keep:
+            self._cache[i] = (rgb, depth)
+        return rgb, depth
+
+    def keyframe(self, i: int, T_wc: np.ndarray | None = None) -> Keyframe:
+        rgb, depth = self.view(i)
+        d = torch.from_numpy(depth)
+        return Keyframe(stamp_ns=int(self.stamps[i]), image=torch.from_numpy(rgb.astype(np.float32) / 255.0),
+                        T_wc=torch.from_numpy(self.T_wc[i] if T_wc is None else T_wc), depth=d,
+                        inv_depth_var=torch.zeros_like(d), valid=d > 0, camera=self.cam, index=i)
+
+    def path_length(self) -> float:
+        p = self.T_wc[:, :3, 3]
+        return float(np.linalg.norm(np.diff(p, axis=0), axis=1).sum())
+
+
+def eval_views(m: Mapper, seq: SimSequence, idx) -> dict:
+    ps, ss = [], []
+    for i in idx:
+        r = m.render(seq.T_wc[i], seq.cam)
+        gt = seq.view(i)[0]
+        ps.append(psnr(r["color"], gt.astype(np.float32) / 255.0))
+        ss.append(ssim(r["color"], gt.astype(np.float32) / 255.0))
+    return {"psnr_db": float(np.mean(ps)), "ssim": float(np.mean(ss)), "views": len(ps)}
+
+
+def run_mapping(seq: SimSequence, cfg: MapperConfig, kf_idx, poses: dict | None = None,
+                refine: bool = False, tag: str = "") -> tuple[Mapper, dict]:
+    """Map keyframes ``kf_idx``; ``poses`` optionally overrides the keyframe poses (noisy runs)."""
+    m = Mapper(cfg)
+    add_t, train_t, refine_t = [], [], []
+    t_start = time.perf_counter()
+    cpu_start = time.process_time()
+    for n, i in enumerate(kf_idx):
+        kf = seq.keyframe(i, None if poses is None else poses[i])
+        t0 = time.perf_counter()
+        m.add_keyframe(kf)
+        t1 = time.perf_counter()
+        st = m.train()
+        t2 = time.perf_counter()
+        if refine:
+            m.refine_poses()
+        t3 = time.perf_counter()
+        add_t.append(t1 - t0)
+        train_t.append(t2 - t1)
+        refine_t.append(t3 - t2)
+        if n % 10 == 0 or n == len(kf_idx) - 1:
+            log(f"{tag} kf {n + 1}/{len(kf_idx)} frame {i}: active {m.num_active} passive {m.num_passive} "
+                f"psnr(train) {st['psnr']:.2f} add {t1 - t0:.2f}s train {t2 - t1:.2f}s refine {t3 - t2:.2f}s")
+    stats = {"keyframes": len(kf_idx), "wall_s": time.perf_counter() - t_start,
+             "cpu_s": time.process_time() - cpu_start,
+             "time_per_kf_s": float(np.mean(np.array(add_t) + np.array(train_t))),
+             "add_per_kf_s": float(np.mean(add_t)), "train_per_kf_s": float(np.mean(train_t)),
+             "refine_per_kf_s": float(np.mean(refine_t)), "num_gaussians": m.num_gaussians,
+             "counters": dict(m.counters)}
+    return m, stats
+
+
+def split_views(n: int, kf_every: int, max_novel: int):
+    kf = list(range(0, n, kf_every))
+    novel = [i for i in range(n) if i % kf_every == kf_every // 2]
+    if len(novel) > max_novel:
+        novel = novel[:: int(math.ceil(len(novel) / max_novel))]
+    return kf, novel
+
+
+# ------------------------------------------------------------------------------------ experiments
+
+
+def exp_room(a, cfg: MapperConfig) -> tuple[dict, Mapper, SimSequence]:
+    seq = SimSequence("room", a.room_frames, a.width, a.height)
+    kf, novel = split_views(seq.n, a.kf_every, a.max_novel)
+    log(f"room: {seq.n} frames, {len(kf)} keyframes, {len(novel)} novel views, {seq.path_length():.1f} m")
+    m, st = run_mapping(seq, cfg, kf, tag="room")
+    ek = eval_views(m, seq, kf)
+    en = eval_views(m, seq, novel)
+    out = {"frames": seq.n, "resolution": [a.width, a.height], "iters_per_keyframe": cfg.iters_per_keyframe,
+           "psnr_keyframes_db": ek["psnr_db"], "ssim_keyframes": ek["ssim"],
+           "psnr_novel_db": en["psnr_db"], "ssim_novel": en["ssim"], "novel_views": en["views"], **st}
+    log("room:", json.dumps({k: v for k, v in out.items() if k != "counters"}))
+    return out, m, seq
+
+
+def exp_score(a, cfg: MapperConfig, base: dict | None) -> dict:
+    seq = SimSequence("room", a.score_frames, a.width, a.height)
+    kf, novel = split_views(seq.n, a.kf_every, a.max_novel)
+    res = {}
+    variants = [("off", replace(cfg, score_manager=False))]
+    variants += [(f"{v:g}", replace(cfg, score_manager=True, sc_storage=v)) for v in a.sc_storage]
+    for name, c in variants:
+        m, st = run_mapping(seq, c, kf, tag=f"score[{name}]")
+        ek = eval_views(m, seq, kf)
+        en = eval_views(m, seq, novel)
+        res[name] = {"num_gaussians": m.num_gaussians, "psnr_keyframes_db": ek["psnr_db"],
+                     "psnr_novel_db": en["psnr_db"], "pruned": m.counters["pruned"],
+                     "stable": int(m.gm.stable.sum()), "time_per_kf_s": st["time_per_kf_s"]}
+        log(f"score[{name}]:", res[name])
+        m.close()
+    off = res["off"]
+    for name, r in res.items():
+        if name != "off":
+            r["reduction_pct"] = 100.0 * (1 - r["num_gaussians"] / max(1, off["num_gaussians"]))
+            r["psnr_loss_db"] = off["psnr_keyframes_db"] - r["psnr_keyframes_db"]
+    return {"frames": seq.n, "keyframes": len(kf), "variants": res}
+
+
+def _noisy_poses(seq: SimSequence, kf_idx, trans_m: float, rot_deg: float, seed: int) -> dict:
+    rng = np.random.default_rng(seed)
+    out = {}
+    for n, i in enumerate(kf_idx):
+        if n == 0:
+            out[i] = seq.T_wc[i].copy()        # the first keyframe defines the world (gauge)
+            continue
+        d = rng.normal(size=3)
+        w = rng.normal(size=3)
+        xi = np.concatenate([d / np.linalg.norm(d) * trans_m, w / np.linalg.norm(w) * math.radians(rot_deg)])
+        # perturb the camera centre by trans_m and the orientation by rot_deg (about the camera)
+        T = seq.T_wc[i].copy()
+        R = np_se3_exp(np.concatenate([np.zeros(3), xi[3:]]))[:3, :3]
+        T[:3, :3] = T[:3, :3] @ R
+        T[:3, 3] = T[:3, 3] + xi[:3]
+        out[i] = T
+    return out
+
+
+def _kf_errors(m: Mapper, seq: SimSequence, kf_idx) -> dict:
+    poses = m.keyframe_poses()
+    et, er = [], []
+    for i in kf_idx:
+        T = poses[int(seq.stamps[i])]
+        G = seq.T_wc[i]
+        et.append(np.linalg.norm(T[:3, 3] - G[:3, 3]))
+        er.append(float(rotation_angle_deg(T[:3, :3].T @ G[:3, :3])))
+    et, er = np.array(et[1:]), np.array(er[1:])
+    est = np.stack([poses[int(seq.stamps[i])] for i in kf_idx])
+    gt = np.stack([seq.T_wc[i] for i in kf_idx])
+    from vings_core.eval.align import umeyama
+    _, R, t = umeyama(est[:, :3, 3], gt[:, :3, 3], with_scale=False)
+    al = est[:, :3, 3] @ R.T + t
+    ate_se3 = float(np.sqrt((np.linalg.norm(al - gt[:, :3, 3], axis=1) ** 2).mean()))
+    # relative pose error between consecutive keyframes (translation, m)
+    rel_e = [np.linalg.inv(est[k]) @ est[k + 1] for k in range(len(est) - 1)]
+    rel_g = [np.linalg.inv(gt[k]) @ gt[k + 1] for k in range(len(gt) - 1)]
+    rpe = np.array([np.linalg.norm((np.linalg.inv(g) @ e)[:3, 3]) for e, g in zip(rel_e, rel_g)])
+    return {"ate_rmse_m": float(np.sqrt((et ** 2).mean())), "rot_rmse_deg": float(np.sqrt((er ** 2).mean())),
+            "ate_max_m": float(et.max()), "ate_se3_aligned_m": ate_se3,
+            "rpe_consecutive_rmse_m": float(np.sqrt((rpe ** 2).mean()))}
+
+
+def exp_pose(a, cfg: MapperConfig) -> dict:
+    seq = SimSequence("room", a.pose_frames, a.width, a.height)
+    kf, novel = split_views(seq.n, a.kf_every, a.max_novel)
+    noisy = _noisy_poses(seq, kf, a.noise_trans, a.noise_rot, seed=1)
+    res = {}
+    for mode in ("none", "single", "multi"):
+        c = replace(cfg, refine_mode=mode)
+        m, st = run_mapping(seq, c, kf, poses=noisy, refine=mode != "none", tag=f"pose[{mode}]")
+        if mode == "none":
+            res["initial"] = _kf_errors(m, seq, kf)
+        err = _kf_errors(m, seq, kf)
+        ek = eval_views(m, seq, kf)
+        res[mode] = {**err, "psnr_keyframes_db": ek["psnr_db"], "refine_per_kf_s": st["refine_per_kf_s"]}
+        log(f"pose[{mode}]:", res[mode])
+        m.close()
+    return {"frames": seq.n, "keyframes": len(kf), "noise": {"trans_m": a.noise_trans, "rot_deg": a.noise_rot},
+            "refine_iters_per_keyframe": cfg.refine_iters, "results": res,
+            "multi_beats_single": res["multi"]["ate_rmse_m"] < res["single"]["ate_rmse_m"],
+            "multi_beats_none": res["multi"]["ate_rmse_m"] < res["none"]["ate_rmse_m"]}
+
+
+def exp_storage(a, cfg: MapperConfig) -> dict:
+    seq = SimSequence("street", None, a.width, a.height, loop=True, length_m=a.street_length, cache=False)
+    n = seq.n if a.street_frames is None else min(seq.n, a.street_frames)
+    kf = list(range(0, n, a.street_kf_every))
+    L = seq.path_length()
+    log(f"storage: street loop {L:.0f} m, {seq.n} frames, {len(kf)} keyframes")
+    c = replace(cfg, iters_per_keyframe=a.street_iters, outdoor=True, max_active=a.max_active, tau=a.tau,
+                delta_k=a.delta_k, passive_memory_mb=a.passive_mb, points_per_keyframe=a.street_points)
+    m = Mapper(c)
+    start_views = [i for i in range(0, min(n, 6 * a.street_kf_every)) if i % a.street_kf_every == a.street_kf_every // 2]
+    for i in start_views:
+        seq.view(i, keep=True)
+    first_visit = None
+    trace = []
+    t0 = time.perf_counter()
+    for k, i in enumerate(kf):
+        m.add_keyframe(seq.keyframe(i))
+        m.train()
+        trace.append({"kf": k, "frame": i, "active": m.num_active, "passive": m.num_passive,
+                      "total": m.num_gaussians, "passive_mem_mb": m.passive.memory_bytes / 2**20,
+                      "passive_disk_mb": m.passive.disk_bytes / 2**20})
+        if k == 8 and first_visit is None:
+            first_visit = eval_views(m, seq, start_views)
+            log("storage: first visit of the start region:", first_visit)
+        if k % 10 == 0:
+            log(f"storage kf {k + 1}/{len(kf)}: {trace[-1]}")
+    # back at the start: the camera is where it began, the tiers bring the start region back
+    m.update_tiers(seq.T_wc[n - 1])
+    back = eval_views(m, seq, start_views)
+    log("storage: after the loop:", back)
+    act = np.array([t["active"] for t in trace])
+    tot = np.array([t["total"] for t in trace])
+    res = {"route_m": L, "frames": n, "keyframes": len(kf), "iters_per_keyframe": c.iters_per_keyframe,
+           "max_active": c.max_active, "tau_m": c.tau, "active_max": int(act.max()),
+           "active_under_cap": bool((act <= c.max_active).all()), "total_final": int(tot[-1]),
+           "total_max": int(tot.max()), "total_exceeds_active_max": bool(tot[-1] > act.max()),
+           "passive_final": m.num_passive, "spilled_chunks_written": m.passive.spilled_total,
+           "chunks_loaded_from_disk": m.passive.loaded_total,
+           "passive_disk_mb_max": float(max(t["passive_disk_mb"] for t in trace)),
+           "passive_memory_budget_mb": c.passive_memory_mb, "peak_rss_mb": peak_rss_mb(),
+           "first_visit_psnr_db": first_visit["psnr_db"] if first_visit else None,
+           "revisit_psnr_db": back["psnr_db"],
+           "revisit_drop_db": (first_visit["psnr_db"] - back["psnr_db"]) if first_visit else None,
+           "wall_s": time.perf_counter() - t0,
+           "trace_every_10": trace[::10]}
+    m.close()
+    return res
+
+
+def exp_timing(a, cfg: MapperConfig, room: dict | None) -> dict:
+    if room is not None:
+        return {"source": "room run", "iters_per_keyframe": cfg.iters_per_keyframe,
+                "time_per_kf_s": room["time_per_kf_s"], "add_per_kf_s": room["add_per_kf_s"],
+                "train_per_kf_s": room["train_per_kf_s"],
+                "train_per_iter_ms": 1000 * room["train_per_kf_s"] / max(1, cfg.iters_per_keyframe),
+                "num_gaussians_final": room["num_gaussians"], "cpu_count": os.cpu_count(),
+                "load_avg_1m_at_end": os.getloadavg()[0]}
+    seq = SimSequence("room", 60, a.width, a.height)
+    kf = list(range(0, 60, a.kf_every))
+    m, st = run_mapping(seq, cfg, kf, tag="timing")
+    m.close()
+    return {"source": "60-frame room", "iters_per_keyframe": cfg.iters_per_keyframe, **st,
+            "cpu_count": os.cpu_count(), "load_avg_1m_at_end": os.getloadavg()[0]}
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--exp", default="room,score,pose,storage,timing")
+    p.add_argument("--quick", action="store_true", help="small sizes for development")
+    p.add_argument("--params", default=None, help="ROS params YAML with a 'mapping' section")
+    p.add_argument("--width", type=int, default=376)
+    p.add_argument("--height", type=int, default=240)
+    p.add_argument("--kf-every", type=int, default=5)
+    p.add_argument("--max-novel", type=int, default=40)
+    p.add_argument("--room-frames", type=int, default=200)
+    p.add_argument("--score-frames", type=int, default=100)
+    p.add_argument("--sc-storage", default="0.5,2,8,32")
+    p.add_argument("--pose-frames", type=int, default=100)
+    p.add_argument("--noise-trans", type=float, default=0.02)
+    p.add_argument("--noise-rot", type=float, default=1.0)
+    p.add_argument("--street-length", type=float, default=320.0)
+    p.add_argument("--street-frames", type=int, default=None)
+    p.add_argument("--street-kf-every", type=int, default=4)
+    p.add_argument("--street-iters", type=int, default=5)
+    p.add_argument("--street-points", type=int, default=8000)
+    p.add_argument("--max-active", type=int, default=60000)
+    p.add_argument("--tau", type=float, default=40.0)
+    p.add_argument("--delta-k", type=int, default=4)
+    p.add_argument("--passive-mb", type=float, default=4.0)
+    p.add_argument("--threads", type=int, default=1, help="torch intra-op threads (numba uses its own)")
+    a = p.parse_args(argv)
+    a.sc_storage = [float(v) for v in a.sc_storage.split(",") if v]
+    if a.quick:
+        a.room_frames = min(a.room_frames, 40)
+        a.score_frames = min(a.score_frames, 30)
+        a.pose_frames = min(a.pose_frames, 30)
+        a.street_frames = a.street_frames or 120
+        a.max_novel = min(a.max_novel, 8)
+    torch.set_num_threads(a.threads)
+    from vings_core.config import load_section
+    cfg = load_section(MapperConfig, "mapping", a.params)
+    if a.quick:
+        cfg = replace(cfg, iters_per_keyframe=min(cfg.iters_per_keyframe, 20))
+    exps = [e.strip() for e in a.exp.split(",") if e.strip()]
+    out: dict = {"config": {k: v for k, v in vars(a).items()}, "load_avg_1m_start": os.getloadavg()[0]}
+    room = None
+    if "room" in exps:
+        room, m, _ = exp_room(a, cfg)
+        m.close()
+        out["room"] = room
+    if "score" in exps:
+        out["score"] = exp_score(a, cfg, room)
+    if "pose" in exps:
+        out["pose"] = exp_pose(a, cfg)
+    if "storage" in exps:
+        out["storage"] = exp_storage(a, cfg)
+    if "timing" in exps:
+        out["timing"] = exp_timing(a, cfg, room)
+    out["peak_rss_mb"] = peak_rss_mb()
+    print(json.dumps(out, default=float))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,221 @@
+"""Front-end building blocks: flow targets, graph, depth upsampling/validity, config, plug-ins."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from vings_core.config import load_section
+from vings_core.errors import ConfigError
+from vings_core.frontend import FrontendConfig
+from vings_core.frontend.depth import (dense_depth, joint_bilateral_upsample, upsample_reference,
+                                       validity_mask)
+from vings_core.frontend.flow import (DISFlow, TorchScriptFlow, dense_from_grid, grid_flow,
+                                      make_flow_estimator, texture_weight)
+from vings_core.frontend.graph import CovisibilityGraph, Edge, select_edges
+from vings_core.frontend.projective import Intrinsics, grid_points, normalized_rays
+from vings_core.geometry import se3_exp
+
+
+def _texture(h=96, w=128, seed=0):
+    import cv2
+    rng = np.random.default_rng(seed)
+    n = rng.random((h // 4, w // 4)).astype(np.float32)
+    img = cv2.resize(n, (w, h), interpolation=cv2.INTER_CUBIC)
+    img = (img - img.min()) / (img.max() - img.min())
+    return (20 + 210 * img).astype(np.uint8)
+
+
+def test_dis_flow_recovers_translation_and_grid_reduction():
+    big = _texture(140, 180)
+    a = np.ascontiguousarray(big[10:106, 10:138])
+    b = np.ascontiguousarray(big[7:103, 15:143])     # content moves by (-5, +3) px
+    est = DISFlow("medium", 1)
+    f = est.flow(a, b)
+    g = est.flow(b, a)
+    assert f.shape == (96, 128, 2) and f.dtype == np.float32
+    _, _, uv = grid_points(128, 96, 8)
+    cfg = FrontendConfig()
+    gf = grid_flow(f, g, a, b, uv.numpy(), 8, cfg)
+    ok = gf.weight > 0.3
+    assert ok.mean() > 0.5
+    disp = gf.target[ok] - uv.numpy()[ok]
+    assert np.median(disp[:, 0]) == pytest.approx(-5.0, abs=0.1)
+    assert np.median(disp[:, 1]) == pytest.approx(3.0, abs=0.1)
+    assert gf.mean_flow == pytest.approx(np.hypot(5, 3), abs=0.3)
+
+
+def test_confidence_drops_for_flat_and_inconsistent_regions():
+    a = _texture()
+    a[:, :48] = 128                                       # textureless left part
+    tex = texture_weight(a, 12, 16, 8, 4.0).reshape(12, 16)
+    assert tex[:, :5].max() < 0.05 and np.median(tex[:, 7:]) > 0.5
+    _, _, uv = grid_points(128, 96, 8)
+    cfg = FrontendConfig()
+    f = np.zeros((96, 128, 2), np.float32)
+    consistent = grid_flow(f, -f, a, a, uv.numpy(), 8, cfg)
+    inconsistent = grid_flow(f, f + 4.0, a, a, uv.numpy(), 8, cfg)
+    col = np.arange(uv.shape[0]) % 16
+    right, left = col >= 7, col < 5
+    assert consistent.weight[right].mean() > 5 * inconsistent.weight[right].mean()
+    assert consistent.weight[left].max() < 0.05
+
+
+def test_dense_from_grid_is_bilinear_at_block_centres():
+    h, w = 4, 5
+    g = np.stack(np.meshgrid(np.arange(w), np.arange(h)), -1).reshape(-1, 2).astype(np.float32)
+    dense = dense_from_grid(g, h, w, 8 * h + 3, 8 * w + 5, 8)
+    assert dense.shape == (8 * h + 3, 8 * w + 5, 2)
+    # midway between two block centres (pixel 7.5 -> average of cells 0 and 1)
+    assert dense[3, 7:9, 0].mean() == pytest.approx(0.5, abs=1e-5)
+    assert dense[3, 11:13, 0].mean() == pytest.approx(1.0, abs=1e-5)
+
+
+def test_joint_bilateral_upsample_matches_reference_and_respects_edges():
+    rng = np.random.default_rng(0)
+    h, w, s = 5, 6, 8
+    inv = np.ones((h, w), np.float32) * 0.25
+    inv[:, 3:] = 1.0                                      # depth edge between columns 2 and 3
+    var = (rng.random((h, w)) * 1e-3 + 1e-4).astype(np.float32)
+    guide = np.full((h * s, w * s), 60, np.float32)
+    guide[:, 3 * s:] = 200                                # the image edge coincides
+    fast_i, fast_v = joint_bilateral_upsample(inv, var, guide, s, 0.8, 12.0, True)
+    ref_i, ref_v = upsample_reference(inv, var, guide, s, 0.8, 12.0, True)
+    assert np.allclose(fast_i, ref_i, rtol=1e-5, atol=1e-6)
+    assert np.allclose(fast_v, ref_v, rtol=1e-4, atol=1e-9)
+    # edge-aware: pixels right next to the edge keep their side's depth
+    assert np.allclose(fast_i[:, 3 * s - 1], 0.25, atol=1e-3)
+    assert np.allclose(fast_i[:, 3 * s], 1.0, atol=1e-3)
+    # without a guide edge the interpolation blurs across it and the spread raises the variance
+    flat = np.full_like(guide, 100)
+    bi, bv = joint_bilateral_upsample(inv, var, flat, s, 0.8, 12.0, True)
+    assert 0.3 < bi[10, 3 * s] < 0.95
+    assert bv[10, 3 * s] > 10 * bv[10, 4]
+
+
+def test_validity_mask_drops_uncertain_excessive_and_flat_far():
+    H, W = 40, 48
+    guide = _texture(H, W)
+    guide[:10] = 180                                      # flat band ("sky")
+    inv = np.full((H, W), 0.5, np.float32)                # 2 m
+    inv[:10] = 0.05                                       # 20 m, flat -> invalid
+    var = np.full((H, W), 1e-4, np.float32)
+    var[20:25, 10:20] = 1.0                               # uncertain patch
+    inv[30:, 40:] = 0.01                                  # 100 m, textured -> excessive
+    ok = validity_mask(inv, var, guide, 2.0, 0.1, 8.0, 3.0, 3.0)
+    assert not ok[:10].any()
+    assert not ok[20:25, 10:20].any()
+    assert not ok[30:, 40:].any()
+    assert ok[12:20].mean() > 0.9
+    dd = dense_depth(np.full((5, 6), 0.5, np.float32), np.full((5, 6), 1e-4, np.float32),
+                     _texture(40, 48), 8, 0.8, 12.0, True, 0.1, 8.0, 3.0, 3.0)
+    assert dd.valid.mean() > 0.9
+    assert np.allclose(dd.depth[dd.valid], 2.0, rtol=1e-3)
+
+
+def test_select_edges_temporal_plus_proximity():
+    K = Intrinsics(100.0, 100.0, 63.5, 47.5)
+    _, _, uv = grid_points(128, 96, 8)
+    rays = normalized_rays(uv, K)
+    # keyframes 0..5 moving right 0.3 m each, keyframe 6 returns next to keyframe 0
+    xs = [0.0, 0.3, 0.6, 0.9, 1.2, 1.5, 0.02]
+    T_wc = torch.stack([se3_exp(torch.tensor([x, 0, 0, 0, 0, 0.0], dtype=torch.float64)) for x in xs])
+    T_cw = torch.linalg.inv(T_wc)
+    d = torch.full((7, uv.shape[0]), 0.25, dtype=torch.float64)
+    sel = select_edges(T_cw, d, 6, rays, uv, K, 128, 96, temporal_radius=2, proximity_px=20.0,
+                       max_proximity=2)
+    assert 4 in sel and 5 in sel          # temporal
+    assert 0 in sel and 1 in sel          # proximity (closest first, capped at 2)
+    assert 2 not in sel and 3 not in sel
+    g = CovisibilityGraph()
+    P = uv.shape[0]
+    for i, j in [(10, 20), (20, 10), (20, 30)]:
+        g.add(Edge(i, j, np.zeros((P, 2)), np.ones(P)))
+    g.remove_keyframe(10)
+    assert len(g) == 1 and g.has(20, 30)
+    ii, jj, tg, w = g.tensors([20, 30])
+    assert ii.tolist() == [0] and jj.tolist() == [1] and tg.shape == (1, P, 2)
+
+
+def test_config_from_params_yaml_and_validation(tmp_path):
+    p = tmp_path / "p.yaml"
+    p.write_text("/**:\n  ros__parameters:\n    frontend:\n      keyframe_flow_lr_px: 3.0\n"
+                 "      window: 6\n")
+    cfg = load_section(FrontendConfig, "frontend", p)
+    assert cfg.keyframe_flow_lr_px == 3.0 and cfg.window == 6
+    p.write_text("/**:\n  ros__parameters:\n    frontend:\n      robust_loss: tukey\n")
+    with pytest.raises(ConfigError, match="robust_loss"):
+        load_section(FrontendConfig, "frontend", p)
+    p.write_text("/**:\n  ros__parameters:\n    frontend:\n      windw: 6\n")
+    with pytest.raises(ConfigError, match="windw"):
+        load_section(FrontendConfig, "frontend", p)
+    with pytest.raises(ConfigError, match="flow_weights_path"):
+        load_section(FrontendConfig, "frontend", None, {"flow_method": "torchscript"})
+
+
+def test_torchscript_flow_plugin_loads_local_file_only(tmp_path):
+    class Const(torch.nn.Module):
+        def forward(self, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+            out = torch.zeros(a.shape[0], 2, a.shape[2], a.shape[3])
+            out[:, 0] = 1.5
+            return out
+
+    path = tmp_path / "flow.pt"
+    torch.jit.script(Const()).save(str(path))
+    est = make_flow_estimator(FrontendConfig(flow_method="torchscript", flow_weights_path=str(path)))
+    assert isinstance(est, TorchScriptFlow)
+    f = est.flow(np.zeros((16, 24), np.uint8), np.zeros((16, 24), np.uint8))
+    assert f.shape == (16, 24, 2) and np.allclose(f[..., 0], 1.5) and np.allclose(f[..., 1], 0)
+    with pytest.raises(ConfigError, match="not found"):
+        TorchScriptFlow(str(tmp_path / "missing.pt"))
+    (tmp_path / "junk.pt").write_bytes(b"not a model")
+    with pytest.raises(ConfigError, match="TorchScript"):
+        TorchScriptFlow(str(tmp_path / "junk.pt"))
+
+
+def test_flow_composition_inversion_and_refinement_around_a_prior():
+    from vings_core.frontend.flow import compose_flow, flow_around, invert_flow
+    H, W = 64, 80
+    base = np.zeros((H, W, 2), np.float32)
+    base[..., 0], base[..., 1] = 5.0, -3.0
+    res = np.zeros_like(base)
+    res[..., 0], res[..., 1] = 1.0, 2.0
+    assert np.allclose(compose_flow(base, res)[10:50, 10:60], [6.0, -1.0], atol=1e-5)
+    # inverse of a smooth non-constant field: g(y) = -f(y + g(y))
+    ys, xs = np.mgrid[0:H, 0:W].astype(np.float32)
+    f = np.stack([2.0 + 0.05 * xs, -1.0 + 0.03 * ys], -1).astype(np.float32)
+    g = invert_flow(f, iters=6)
+    import cv2
+    back = cv2.remap(f, xs + g[..., 0], ys + g[..., 1], cv2.INTER_LINEAR)
+    assert np.allclose((g + back)[8:-8, 8:-8], 0, atol=1e-3)
+    # refinement around a prior: a 30 px shift with a prior 4 px off
+    big = _texture(120, 200, seed=3)
+    a = np.ascontiguousarray(big[20:84, 60:140])
+    b = np.ascontiguousarray(big[20:84, 30:110])     # content moves +30 px in x
+    prior = np.zeros((64, 80, 2), np.float32)
+    prior[..., 0] = 26.0
+    est = DISFlow("medium", 1)
+    fl = flow_around(est, a, b, prior)
+    assert np.median(fl[16:48, 8:40, 0]) == pytest.approx(30.0, abs=0.1)
+    assert np.median(np.abs(fl[16:48, 8:40, 1])) < 0.1
+
+
+def test_triangulate_grid_finds_depth_by_1d_search():
+    from vings_core.frontend.ba import triangulate_grid
+    from vings_core.frontend.projective import project_edges
+    K = Intrinsics(100.0, 100.0, 63.5, 47.5)
+    _, _, uv = grid_points(128, 96, 8)
+    rays = normalized_rays(uv, K)
+    T = torch.stack([torch.eye(4, dtype=torch.float64),
+                     se3_exp(torch.tensor([-0.3, 0.05, 0.1, 0.0, 0.02, 0.0], dtype=torch.float64))])
+    rng = np.random.default_rng(0)
+    cands = 1.0 / torch.logspace(-0.5, 2.0, 64, dtype=torch.float64)
+    true = cands[torch.from_numpy(rng.integers(5, 40, (2, uv.shape[0])))]
+    ii, jj = torch.tensor([0, 1]), torch.tensor([1, 0])
+    tg, _ = project_edges(T, true, ii, jj, rays, K)
+    w = torch.ones(2, uv.shape[0], dtype=torch.float64)
+    w[1, :10] = 0                                         # unobserved pixels of keyframe 1
+    d = triangulate_grid(T, ii, jj, rays, tg, w, K, cands)
+    assert torch.allclose(d[0], true[0])
+    assert torch.allclose(d[1, 10:], true[1, 10:])
+    assert torch.allclose(d[1, :10], true[1, 10:].median().expand(10))

@@ -1,0 +1,108 @@
+"""Mapper configuration (params section ``mapping``).
+
+Units: distances in metres, angles in radians, learning rates per Adam step, score thresholds in
+*pixel-weight units at the working resolution* (one fully opaque pixel covered by a Gaussian counts
+1). Contribution and error scores scale with the number of pixels a Gaussian covers, i.e. with
+``width * height``: when the working resolution changes from ``W0 x H0`` to ``W x H`` multiply
+``sc_status``, ``se_status`` and ``sc_storage`` by ``(W * H) / (W0 * H0)`` to keep the same
+behaviour (the paper's values were set at higher resolutions; the defaults here are for 376x240).
+See docs/mapping.md.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+
+@dataclass
+class MapperConfig:
+    # ---- representation
+    sh_degree: int = 0                 # spherical-harmonics degree of the colours (0..3)
+    background: list[float] = field(default_factory=lambda: [0.0, 0.0, 0.0])  # RGB in [0, 1]
+
+    # ---- keyframe window and training
+    window_size: int = 8               # local keyframe list length (paper 8)
+    iters_per_keyframe: int = 50       # training iterations after each new keyframe (paper 50-100)
+    sample_ratio: float = 0.5          # sample rasterizer: fraction r of pixels per tile back-propagated
+    lambda_rgb: float = 1.0
+    lambda_depth: float = 0.5
+    lambda_normal: float = 0.1
+    lambda_acc: float = 0.1
+    lambda_ssim: float = 0.2           # L_rgb = (1 - l) L1 + l (1 - SSIM)
+    depth_rel_std0: float = 0.02       # depth weight w = 1 / (1 + (sigma_d/d / depth_rel_std0)^2)
+    normal_loss_warmup: int = 0        # iterations of a Gaussian map before L_n is switched on
+
+    # ---- learning rates (sparse Adam, only unstable Gaussians are updated)
+    lr_means: float = 2.0e-4           # m per step (indoor)
+    outdoor: bool = False              # lower position learning rate outdoors (paper, from 3DGS)
+    lr_means_outdoor_factor: float = 0.1
+    lr_quats: float = 1.0e-3
+    lr_scales: float = 5.0e-3          # on log-scales
+    lr_opacity: float = 2.5e-2         # on opacity logits
+    lr_sh: float = 2.5e-3              # DC band; higher bands use lr_sh / 20
+    adam_betas: list[float] = field(default_factory=lambda: [0.9, 0.999])
+    adam_eps: float = 1.0e-15
+
+    # ---- initialisation / adding Gaussians from keyframe depth
+    points_per_keyframe: int = 20000   # k new Gaussians for a fully uncovered frame (paper 50 000 at
+                                       # 640x480); scaled by the low-accumulation area fraction
+    max_depth: float = 40.0            # m: pixels farther are masked ("excessive depth")
+    max_depth_rel_std: float = 0.05    # sigma_d / d above which a pixel is masked (high uncertainty)
+    init_opacity: float = 0.7
+    init_scale_factor: float = 0.9     # sigma = factor * mean distance to the 3 nearest new points
+    min_scale_px: float = 0.3          # clamp of the initial sigma, in pixels of the adding frame
+    max_scale_px: float = 6.0
+    add_alpha_threshold: float = 0.6   # pixels with accumulated alpha below are "low accumulation"
+
+    # ---- deleting conflicting Gaussians when a keyframe arrives
+    delete_depth_rel: float = 0.15     # centre in front of the observed surface by > this x depth
+    delete_rgb: float = 0.35           # mean abs RGB error at the centre's pixel above which a
+                                       # Gaussian lying on the observed surface is removed
+    delete_max_radius_frac: float = 0.08  # projected radius > frac * image diagonal is removed
+
+    # ---- score manager (paper Algorithm 1); thresholds in pixel-weight units, see module doc
+    score_manager: bool = True
+    delta_status: int = 400            # status control every n iterations
+    delta_storage: int = 200           # storage control every n iterations
+    sc_status: float = 1.0e-4          # unstable -> stable when S_C below
+    se_status: float = 0.5             # stable -> unstable when S_E above
+    sc_storage: float = 0.5            # prune unstable Gaussians with S_C below
+    min_score_age: int = 100           # iterations of scoring before a Gaussian may be judged
+
+    # ---- storage tiers (paper "GPU-CPU transfer")
+    delta_k: int = 8                   # tier update every n keyframes
+    tau: float = 30.0                  # m: Gaussians whose ID(g) keyframe is nearer stay active
+    max_active: int = 400000           # cap on the active (optimised, rendered) set
+    passive_memory_mb: float = 1024.0  # host-memory budget of the passive store; beyond: spill to disk
+    spill_dir: str = ""                # "" = a private temporary folder
+
+    # ---- single-to-multi pose refinement
+    refine_mode: str = "multi"         # "none" | "single" (rendered pose only) | "multi"
+    refine_iters: int = 10             # per call of refine_poses()
+    refine_lr_trans: float = 1.0e-3    # m per Adam step
+    refine_lr_rot: float = 2.0e-3      # rad per Adam step
+    refine_min_pixels: float = 50.0    # a keyframe needs this much contribution to be refined
+    refine_fix_first: bool = True      # gauge: the first keyframe's pose is held fixed
+
+    seed: int = 0
+
+    def validate(self) -> None:
+        if not 0 <= self.sh_degree <= 3:
+            raise ValueError(f"sh_degree must be 0..3, got {self.sh_degree}")
+        if len(self.background) != 3:
+            raise ValueError("background must have 3 values")
+        if self.window_size < 1:
+            raise ValueError("window_size must be >= 1")
+        if self.iters_per_keyframe < 0:
+            raise ValueError("iters_per_keyframe must be >= 0")
+        if not 0 < self.sample_ratio <= 1:
+            raise ValueError(f"sample_ratio must be in (0, 1], got {self.sample_ratio}")
+        if self.refine_mode not in ("none", "single", "multi"):
+            raise ValueError(f"refine_mode must be none|single|multi, got {self.refine_mode!r}")
+        if self.delta_status < 1 or self.delta_storage < 1 or self.delta_k < 1:
+            raise ValueError("delta_status, delta_storage and delta_k must be >= 1")
+        if self.points_per_keyframe < 1:
+            raise ValueError("points_per_keyframe must be >= 1")
+        if self.max_active < 1:
+            raise ValueError("max_active must be >= 1")
+        if len(self.adam_betas) != 2:
+            raise ValueError("adam_betas must have 2 values")

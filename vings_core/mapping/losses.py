@@ -1,0 +1,140 @@
+"""Mapping losses (paper eq. "loss"): L = l_rgb L_rgb + l_depth L_d + l_norm L_n + l_acc L_acc.
+
+Images are (H, W, 3) float in [0, 1]; depth (H, W) metric z-depth (m, 0 = invalid); normals
+(H, W, 3) unit vectors in the camera frame; alpha (H, W) accumulated opacity.
+"""
+from __future__ import annotations
+
+import math
+
+import torch
+import torch.nn.functional as F
+
+from ..types import CameraModel
+
+
+def _gauss_window(size: int = 11, sigma: float = 1.5, dtype=torch.float32) -> torch.Tensor:
+    x = torch.arange(size, dtype=dtype) - (size - 1) / 2
+    g = torch.exp(-(x ** 2) / (2 * sigma ** 2))
+    g = g / g.sum()
+    return g
+
+
+def ssim_map(a: torch.Tensor, b: torch.Tensor, size: int = 11, sigma: float = 1.5) -> torch.Tensor:
+    """Differentiable SSIM map (H, W) of (H, W, C) images in [0, 1] (Gaussian window, as 3DGS).
+
+    The window is separable (two 1-D convolutions) with zero padding like 3DGS's ``ssim``.
+    """
+    C = a.shape[-1]
+    x = a.permute(2, 0, 1)[None]
+    y = b.permute(2, 0, 1)[None]
+    g = _gauss_window(size, sigma, a.dtype).to(a.device)
+    p = size // 2
+    stacked = torch.cat([x, y, x * x, y * y, x * y], 1)
+    gh5 = g.reshape(1, 1, 1, size).expand(5 * C, 1, 1, size)
+    gv5 = g.reshape(1, 1, size, 1).expand(5 * C, 1, size, 1)
+    f = F.conv2d(F.conv2d(stacked, gh5, padding=(0, p), groups=5 * C), gv5, padding=(p, 0), groups=5 * C)
+    mu_x, mu_y, xx, yy, xy = f.split(C, 1)
+    sxx = xx - mu_x ** 2
+    syy = yy - mu_y ** 2
+    sxy = xy - mu_x * mu_y
+    C1, C2 = 0.01 ** 2, 0.03 ** 2
+    s = ((2 * mu_x * mu_y + C1) * (2 * sxy + C2)) / ((mu_x ** 2 + mu_y ** 2 + C1) * (sxx + syy + C2))
+    return s[0].mean(0)
+
+
+def ssim_reference(a: torch.Tensor, b: torch.Tensor, size: int = 11, sigma: float = 1.5) -> torch.Tensor:
+    """Slow reference SSIM map with an explicit 2-D window (for tests)."""
+    C = a.shape[-1]
+    g = _gauss_window(size, sigma, a.dtype)
+    w2 = (g[:, None] * g[None, :]).expand(C, 1, size, size)
+    x = a.permute(2, 0, 1)[None]
+    y = b.permute(2, 0, 1)[None]
+    p = size // 2
+    mu_x = F.conv2d(x, w2, padding=p, groups=C)
+    mu_y = F.conv2d(y, w2, padding=p, groups=C)
+    sxx = F.conv2d(x * x, w2, padding=p, groups=C) - mu_x ** 2
+    syy = F.conv2d(y * y, w2, padding=p, groups=C) - mu_y ** 2
+    sxy = F.conv2d(x * y, w2, padding=p, groups=C) - mu_x * mu_y
+    C1, C2 = 0.01 ** 2, 0.03 ** 2
+    s = ((2 * mu_x * mu_y + C1) * (2 * sxy + C2)) / ((mu_x ** 2 + mu_y ** 2 + C1) * (sxx + syy + C2))
+    return s[0].mean(0)
+
+
+def l1_map(pred: torch.Tensor, gt: torch.Tensor) -> torch.Tensor:
+    """(H, W) mean absolute RGB error per pixel (the per-pixel L_rgb(u) of the score manager)."""
+    return (pred - gt).abs().mean(-1)
+
+
+def rgb_loss(pred: torch.Tensor, gt: torch.Tensor, lambda_ssim: float = 0.2,
+             mask: torch.Tensor | None = None) -> torch.Tensor:
+    """``(1 - l) L1 + l (1 - SSIM)`` averaged over pixels (or over ``mask``)."""
+    l1 = l1_map(pred, gt)
+    term = (1 - lambda_ssim) * l1
+    if lambda_ssim > 0:
+        term = term + lambda_ssim * (1 - ssim_map(pred, gt))
+    if mask is None:
+        return term.mean()
+    m = mask.to(term.dtype)
+    return (term * m).sum() / m.sum().clamp_min(1)
+
+
+def depth_weight(depth: torch.Tensor, inv_depth_var: torch.Tensor, rel_std0: float) -> torch.Tensor:
+    """Inverse-uncertainty weight in (0, 1]: ``1 / (1 + (sigma_d / d / rel_std0)^2)``.
+
+    ``sigma_d / d = sqrt(var(1/d)) * d`` (first-order propagation of the inverse-depth variance).
+    """
+    rel = torch.sqrt(inv_depth_var.clamp_min(0)) * depth
+    return 1.0 / (1.0 + (rel / rel_std0) ** 2)
+
+
+def depth_loss(pred: torch.Tensor, gt: torch.Tensor, weight: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
+    """Uncertainty-weighted relative L1 ``mean_valid w |D_hat - D| / D`` (scale-free: indoors and outdoors)."""
+    m = valid & (gt > 0)
+    n = m.sum().clamp_min(1)
+    r = (pred - gt).abs() / gt.clamp_min(1e-6)
+    return (r * weight * m.to(r.dtype)).sum() / n
+
+
+def normals_from_depth(depth: torch.Tensor, camera: CameraModel) -> tuple[torch.Tensor, torch.Tensor]:
+    """Differentiable camera-frame normals of a depth map (central differences), facing the camera.
+
+    Returns ``(normals (H, W, 3), valid (H, W) bool)``; border pixels and pixels with a zero
+    neighbour are invalid.
+    """
+    H, W = depth.shape
+    v, u = torch.meshgrid(torch.arange(H, dtype=depth.dtype, device=depth.device),
+                          torch.arange(W, dtype=depth.dtype, device=depth.device), indexing="ij")
+    P = torch.stack([(u - camera.cx) / camera.fx * depth, (v - camera.cy) / camera.fy * depth, depth], -1)
+    du = torch.zeros_like(P)
+    dv = torch.zeros_like(P)
+    du[:, 1:-1] = P[:, 2:] - P[:, :-2]
+    dv[1:-1] = P[2:] - P[:-2]
+    n = torch.cross(du, dv, dim=-1)
+    n = n / torch.linalg.norm(n, dim=-1, keepdim=True).clamp_min(1e-12)
+    n = torch.where(((n * P).sum(-1, keepdim=True) > 0), -n, n)
+    ok = torch.zeros_like(depth, dtype=torch.bool)
+    d = depth.detach()
+    ok[1:-1, 1:-1] = (d[1:-1, 1:-1] > 0) & (d[1:-1, 2:] > 0) & (d[1:-1, :-2] > 0) & (d[2:, 1:-1] > 0) & \
+        (d[:-2, 1:-1] > 0)
+    return n, ok
+
+
+def normal_loss(n_render: torch.Tensor, n_depth: torch.Tensor, weight: torch.Tensor,
+                valid: torch.Tensor) -> torch.Tensor:
+    """2DGS normal consistency: ``mean_valid w (1 - n_render . n_depth)``."""
+    m = valid.to(n_render.dtype)
+    e = 1 - (n_render * n_depth).sum(-1)
+    return (e * weight * m).sum() / m.sum().clamp_min(1)
+
+
+def accumulation_loss(alpha: torch.Tensor, masked: torch.Tensor) -> torch.Tensor:
+    """Masked-out pixels (no usable depth: sky, excessive depth) must stay empty: ``mean_masked alpha``."""
+    if not bool(masked.any()):
+        return alpha.sum() * 0
+    return alpha[masked].mean()
+
+
+def psnr(a: torch.Tensor, b: torch.Tensor) -> float:
+    mse = float(((a - b) ** 2).mean())
+    return float("inf") if mse <= 0 else -10 * math.log10(mse)

@@ -1,0 +1,712 @@
+"""Stateful online 2DGS mapper (paper section "2D Gaussian Map").
+
+Typical use (see docs/mapping.md)::
+
+    m = Mapper(MapperConfig())
+    for kf in keyframes:            # vings_core.types.Keyframe, T_wc camera-to-world
+        m.add_keyframe(kf)          # render, delete conflicting, add in low-accumulation regions
+        m.train()                   # iters_per_keyframe iterations on the local window
+        poses = m.refine_poses()    # single-to-multi pose refinement -> {stamp_ns: T_wc}
+    out = m.render(T_wc, camera)    # numpy color / depth / normal / alpha
+    m.save_ply("map.ply"); m.save_checkpoint("map.ckpt.npz")
+
+Frames: ``T_wc`` 4x4 float64 camera-to-world; Gaussians in the world frame (m). Nothing here loops
+over Gaussians or pixels in Python.
+"""
+from __future__ import annotations
+
+import io
+import json
+import math
+import os
+import time
+from dataclasses import asdict, replace
+from pathlib import Path
+from typing import Optional
+
+import numpy as np
+import torch
+
+from ..config import config_from_dict
+from ..errors import InputError
+from ..geometry import pose_inverse, rotmat_to_quat, se3_exp
+from ..render import rasterize_2dgs
+from ..types import CameraModel, Keyframe
+from ..util import atomic_write
+from . import scores as S
+from .config import MapperConfig
+from .gaussians import ALL_FIELDS, PARAM_FIELDS, GaussianMap, quat_multiply
+from .lie import se3_exp_safe
+from .init import gaussians_from_pixels, num_to_add, sample_pixels, usable_depth_mask, depth_normals
+from .losses import (accumulation_loss, depth_loss, depth_weight, l1_map, normal_loss, normals_from_depth,
+                     rgb_loss)
+from .optim import sparse_adam_step_fast
+from .storage import PassiveStore, active_split, owner_distances
+
+CHECKPOINT_VERSION = 1
+
+
+class Mapper:
+    """Online 2D Gaussian map trained from keyframes.
+
+    ``config``: :class:`MapperConfig` (None = defaults). ``device``: torch device of the active set
+    ('cpu'; the rasterizer routes CUDA tensors to gsplat when installed).
+    """
+
+    def __init__(self, config: Optional[MapperConfig] = None, device: str = "cpu"):
+        self.cfg = config if config is not None else MapperConfig()
+        self.cfg.validate()
+        self.device = torch.device(device)
+        self.gm = GaussianMap.empty(self.cfg.sh_degree, self.cfg.window_size, self.device)
+        self._slots: list[int] = [-1] * self.cfg.window_size   # window keyframe stamp per score slot
+        self.passive = PassiveStore(int(self.cfg.passive_memory_mb * 2**20), self.cfg.spill_dir or None)
+        self.window: list[Keyframe] = []
+        self._poses: dict[int, np.ndarray] = {}
+        self._order: list[int] = []                 # keyframe stamps in insertion order
+        self.camera: Optional[CameraModel] = None
+        self.render_count = 0                        # training renders so far (score clock)
+        self.kf_count = 0
+        self.rng = torch.Generator().manual_seed(int(self.cfg.seed))
+        self._queue: list[int] = []                  # shuffled round of window stamps (training)
+        self._rqueue: list[int] = []                 # same, for pose refinement
+        self._loss_maps: dict[int, torch.Tensor] = {}  # last per-pixel L1 map of window keyframes
+        self._aux: dict[int, dict] = {}               # cached per-keyframe masks / weights
+        self._pose_adam: dict[int, tuple] = {}        # stamp -> (m (6,), v (6,), steps) of pose refinement
+        self.counters = dict(added=0, deleted=0, pruned=0, to_stable=0, to_unstable=0, to_passive=0,
+                             from_passive=0, tier_updates=0)
+        self.timings = dict(add_s=0.0, train_s=0.0, refine_s=0.0)
+        self._bg = torch.tensor(self.cfg.background, dtype=torch.float32)
+
+    # ================================================================== public API
+    @property
+    def num_gaussians(self) -> int:
+        """Active + passive Gaussians."""
+        return len(self.gm) + self.passive.num_gaussians
+
+    @property
+    def num_active(self) -> int:
+        return len(self.gm)
+
+    @property
+    def num_passive(self) -> int:
+        return self.passive.num_gaussians
+
+    def keyframe_poses(self) -> dict[int, np.ndarray]:
+        """``{stamp_ns: T_wc}`` of every keyframe added (copies, float64 4x4)."""
+        return {s: self._poses[s].copy() for s in self._order}
+
+    def set_keyframe_poses(self, poses: dict[int, np.ndarray], move_gaussians: bool = True) -> None:
+        """Replace keyframe poses (loop closure, front-end updates).
+
+        With ``move_gaussians`` each keyframe's Gaussians (ID(g) = that keyframe) follow it rigidly:
+        ``mu' = T_new T_old^-1 mu`` (paper, loop correction); passive ones when they come back.
+        Unknown stamps raise :class:`InputError`.
+        """
+        unknown = [s for s in poses if int(s) not in self._poses]
+        if unknown:
+            raise InputError(f"set_keyframe_poses: unknown keyframe stamps {unknown[:5]}")
+        deltas = {}
+        for s, T in poses.items():
+            T = _check_pose(T, f"set_keyframe_poses[{s}]")
+            old = self._poses[int(s)]
+            if np.array_equal(T, old):
+                continue
+            deltas[int(s)] = T @ np.linalg.inv(old)
+            self._poses[int(s)] = T.copy()
+        if not deltas:
+            return
+        for kf in self.window:
+            if kf.stamp_ns in deltas:
+                kf.T_wc = torch.from_numpy(self._poses[kf.stamp_ns].copy())
+        if move_gaussians and len(self.gm):
+            self._move_active_by_owner(deltas)
+        if not move_gaussians:
+            # passive Gaussians must not follow either: re-snapshot their owners
+            for c in self.passive.chunks:
+                for i, s in enumerate(c.owners):
+                    if int(s) in deltas:
+                        c.owner_T[i] = self._poses[int(s)]
+
+    def add_keyframe(self, kf: Keyframe) -> dict:
+        """Insert a keyframe: tier update (every ``delta_k``), render it, delete conflicting Gaussians,
+        add Gaussians from its depth in low-accumulation regions. Returns counts."""
+        t0 = time.perf_counter()
+        self._check_keyframe(kf)
+        kf = replace(kf, T_wc=kf.T_wc.clone(), image=kf.image.to(torch.float32)[..., :3].contiguous(),
+                     depth=kf.depth.to(torch.float32), inv_depth_var=kf.inv_depth_var.to(torch.float32),
+                     valid=kf.valid.to(torch.bool))
+        s = int(kf.stamp_ns)
+        self._poses[s] = kf.T_wc.numpy().copy()
+        self._order.append(s)
+        self.window.append(kf)
+        if len(self.window) > self.cfg.window_size:
+            old = self.window.pop(0)
+            self._loss_maps.pop(old.stamp_ns, None)
+            self._aux.pop(old.stamp_ns, None)
+            slot = self._slots.index(old.stamp_ns)
+            S.clear_slot(self.gm.win_c, self.gm.win_e, slot)    # window turnover: its scores go
+            self._slots[slot] = -1
+        self._slots[self._slots.index(-1)] = s
+        self._queue = []
+        self._rqueue = []
+        self.kf_count += 1
+        info = {"stamp_ns": s}
+        if self.kf_count % self.cfg.delta_k == 0:
+            info.update(self.update_tiers(self._poses[s]))
+        info.update(self._densify(kf))
+        if len(self.gm) > self.cfg.max_active:
+            info.update(self.update_tiers(self._poses[s]))
+        self.timings["add_s"] += time.perf_counter() - t0
+        return info
+
+    def train(self, iters: Optional[int] = None) -> dict:
+        """Run ``iters`` (default ``iters_per_keyframe``) training iterations on the local window.
+
+        Returns stats: iterations, mean loss terms, PSNR of the last renders, Gaussian counts."""
+        iters = self.cfg.iters_per_keyframe if iters is None else int(iters)
+        t0 = time.perf_counter()
+        acc = dict(loss=0.0, rgb=0.0, depth=0.0, normal=0.0, acc=0.0, psnr=0.0)
+        for _ in range(iters):
+            if not self.window or len(self.gm) == 0:
+                break
+            terms = self._train_step()
+            for k in acc:
+                acc[k] += terms[k]
+        n = max(1, iters)
+        dt = time.perf_counter() - t0
+        self.timings["train_s"] += dt
+        out = {k: v / n for k, v in acc.items()}
+        out.update(iterations=iters, time_s=dt, num_active=len(self.gm), num_passive=self.passive.num_gaussians,
+                   num_stable=int(self.gm.stable.sum()), **self.counters)
+        return out
+
+    def refine_poses(self, iters: Optional[int] = None, mode: Optional[str] = None) -> dict[int, np.ndarray]:
+        """Single-to-multi pose refinement; returns the refined ``{stamp_ns: T_wc}`` of all keyframes.
+
+        Each iteration renders one window keyframe. ``mode`` (default ``config.refine_mode``):
+        ``"multi"``: the loss reaches the pose of every keyframe owning visible Gaussians (through
+        ID(g)); a pose change of keyframe k moves its Gaussians rigidly with it, so the rendered
+        keyframe's own Gaussians move with its camera. ``"single"``: only the rendered camera moves,
+        the map is fixed (the MonoGS/SplaTAM baseline). ``"none"``: nothing. Updated poses replace the
+        stored ones (and the window keyframes' ``T_wc``)."""
+        mode = self.cfg.refine_mode if mode is None else mode
+        if mode not in ("none", "single", "multi"):
+            raise InputError(f"refine_poses: mode must be none|single|multi, got {mode!r}")
+        iters = self.cfg.refine_iters if iters is None else int(iters)
+        if mode == "none" or iters <= 0 or not self.window or len(self.gm) == 0:
+            return self.keyframe_poses()
+        t0 = time.perf_counter()
+        self._refine(mode, iters)
+        self.timings["refine_s"] += time.perf_counter() - t0
+        return self.keyframe_poses()
+
+    @torch.no_grad()
+    def render(self, T_wc: np.ndarray, camera: CameraModel, include_passive: bool = True) -> dict:
+        """Render the map from camera-to-world ``T_wc`` with ``camera``.
+
+        Uses the active set plus (``include_passive``) the passive Gaussians whose ID(g) keyframe is
+        within ``tau`` of the camera (read, not moved). Returns numpy arrays: ``color`` (H, W, 3)
+        float32 in [0, 1]; ``depth`` (H, W) expected z-depth (m, 0 where empty); ``normal`` (H, W, 3)
+        unit normals in the camera frame (0 where empty); ``alpha`` (H, W) accumulated opacity.
+        """
+        T_wc = _check_pose(T_wc, "render T_wc")
+        gm = self.gm
+        if include_passive and self.passive.num_gaussians:
+            extra = self._peek_passive(T_wc[:3, 3], self.cfg.tau)
+            if extra is not None:
+                gm = GaussianMap.concat([gm, extra.to(self.device)])
+        out = self._rasterize(gm, torch.from_numpy(np.linalg.inv(T_wc)), camera, sample_ratio=1.0)
+        a = out.alpha
+        nrm = out.normal / torch.linalg.norm(out.normal, dim=-1, keepdim=True).clamp_min(1e-12)
+        return {"color": out.color.clamp(0, 1).numpy().astype(np.float32),
+                "depth": torch.where(a > 1e-4, out.depth / a.clamp_min(1e-10), torch.zeros_like(a)).numpy()
+                .astype(np.float32),
+                "normal": torch.where(a[..., None] > 1e-4, nrm, torch.zeros_like(nrm)).numpy().astype(np.float32),
+                "alpha": a.numpy().astype(np.float32)}
+
+    def all_gaussians(self) -> GaussianMap:
+        """Active and passive Gaussians in one map (passive ones moved by pending pose changes)."""
+        extra = self.passive.all(self._poses)
+        return self.gm if extra is None else GaussianMap.concat([self.gm, extra.to(self.device)])
+
+    def save_ply(self, path: str | os.PathLike) -> None:
+        """Write every Gaussian (active + passive) as a viewer-compatible ``map.ply``."""
+        from .ply import write_ply
+        write_ply(path, self.all_gaussians())
+
+    def update_tiers(self, T_wc_now: np.ndarray) -> dict:
+        """Storage tiers: Gaussians whose ID(g) keyframe is within ``tau`` of the camera are active
+        (nearest first, at most ``max_active``), the others go to the passive store."""
+        pos = np.asarray(T_wc_now, dtype=np.float64)[:3, 3]
+        stamps, positions = self._pose_table()
+        near = lambda owners: (np.linalg.norm(  # noqa: E731
+            positions[np.searchsorted(stamps, owners).clip(0, len(stamps) - 1)] - pos, axis=1) < self.cfg.tau) \
+            | ~np.isin(owners, stamps)
+        back = self.passive.take(near, self._poses) if self.passive.num_gaussians else None
+        n_back = 0 if back is None else len(back)
+        if back is not None:
+            # their window scores refer to keyframes that have left the window: scoring restarts
+            S.reset_scores(back.win_c, back.win_e, back.score_since, None, self.render_count)
+            self.gm = GaussianMap.concat([self.gm, back.to(self.device)])
+        dist = owner_distances(self.gm.kf_id, stamps, positions, pos)
+        keep = active_split(dist, self.cfg.tau, self.cfg.max_active).to(self.device)
+        n_out = int((~keep).sum())
+        if n_out:
+            self.passive.put(self.gm.index(~keep), self._poses)
+            self.gm = self.gm.index(keep)
+        self.counters["to_passive"] += n_out
+        self.counters["from_passive"] += n_back
+        self.counters["tier_updates"] += 1
+        return {"tier_in": n_back, "tier_out": n_out}
+
+    def close(self) -> None:
+        """Remove passive-store spill files (private temporary folder)."""
+        self.passive.close()
+
+    # ---------------------------------------------------------------- checkpoint
+    def save_checkpoint(self, path: str | os.PathLike) -> None:
+        """Lossless checkpoint (``.npz``): all Gaussians (parameters, two scales, ID(g), scores, status,
+        optimiser state; passive ones included), keyframe poses, the window keyframes, counters, RNG
+        state and config. :meth:`load_checkpoint` restores it bit-exactly. Written atomically."""
+        d: dict[str, np.ndarray] = {}
+        for k, v in self.gm.to_numpy().items():
+            d[f"active/{k}"] = v
+        pas = self.passive.all(self._poses)
+        pas = GaussianMap.empty(self.cfg.sh_degree, self.cfg.window_size) if pas is None else pas
+        for k, v in pas.to_numpy().items():
+            d[f"passive/{k}"] = v
+        d["kf/stamps"] = np.array(self._order, dtype=np.int64)
+        d["kf/T_wc"] = np.stack([self._poses[s] for s in self._order]) if self._order else np.zeros((0, 4, 4))
+        for i, kf in enumerate(self.window):
+            d[f"win{i}/stamp"] = np.array(kf.stamp_ns, dtype=np.int64)
+            d[f"win{i}/index"] = np.array(kf.index, dtype=np.int64)
+            for k in ("image", "T_wc", "depth", "inv_depth_var", "valid"):
+                d[f"win{i}/{k}"] = getattr(kf, k).cpu().numpy()
+            d[f"win{i}/loss_map"] = (self._loss_maps[kf.stamp_ns].numpy() if kf.stamp_ns in self._loss_maps
+                                     else np.zeros((0, 0), np.float32))
+        meta = {"version": CHECKPOINT_VERSION, "config": asdict(self.cfg), "render_count": self.render_count,
+                "kf_count": self.kf_count, "queue": self._queue, "rqueue": self._rqueue, "slots": self._slots,
+                "window": len(self.window), "counters": self.counters,
+                "camera": self.camera.to_dict() if self.camera is not None else None}
+        d["meta"] = np.frombuffer(json.dumps(meta).encode(), dtype=np.uint8)
+        d["rng_state"] = self.rng.get_state().numpy()
+        pa = sorted(self._pose_adam)
+        d["pose_adam/stamps"] = np.array(pa, dtype=np.int64)
+        d["pose_adam/m"] = np.stack([self._pose_adam[s][0] for s in pa]) if pa else np.zeros((0, 6))
+        d["pose_adam/v"] = np.stack([self._pose_adam[s][1] for s in pa]) if pa else np.zeros((0, 6))
+        d["pose_adam/steps"] = np.array([self._pose_adam[s][2] for s in pa], dtype=np.int64)
+
+        def _w(tmp: str) -> None:
+            with open(tmp, "wb") as f:
+                np.savez(f, **d)
+        atomic_write(path, _w)
+
+    @staticmethod
+    def load_checkpoint(path: str | os.PathLike, config: Optional[MapperConfig] = None,
+                        device: str = "cpu") -> "Mapper":
+        """Restore a mapper saved by :meth:`save_checkpoint`. ``config`` overrides the stored one
+        (None = the stored config)."""
+        path = Path(path)
+        if not path.is_file():
+            raise InputError(f"{path}: map checkpoint not found")
+        try:
+            z = np.load(path, allow_pickle=False)
+            meta = json.loads(bytes(z["meta"]).decode())
+        except (OSError, ValueError, KeyError) as e:
+            raise InputError(f"{path}: not a VINGS map checkpoint ({e})") from None
+        if meta.get("version") != CHECKPOINT_VERSION:
+            raise InputError(f"{path}: checkpoint version {meta.get('version')} not supported")
+        cfg = config if config is not None else config_from_dict(MapperConfig, meta["config"], f"{path}: config")
+        m = Mapper(cfg, device)
+        try:
+            m.gm = GaussianMap.from_numpy({k: z[f"active/{k}"] for k in ALL_FIELDS}, device)
+            pas = GaussianMap.from_numpy({k: z[f"passive/{k}"] for k in ALL_FIELDS})
+            stamps = z["kf/stamps"]
+            Ts = z["kf/T_wc"]
+            m._order = [int(s) for s in stamps]
+            m._poses = {int(s): np.array(T) for s, T in zip(stamps, Ts)}
+            m.camera = CameraModel.from_dict(meta["camera"]) if meta["camera"] else None
+            for i in range(int(meta["window"])):
+                p = f"win{i}/"
+                kf = Keyframe(stamp_ns=int(z[p + "stamp"]), image=torch.from_numpy(z[p + "image"]),
+                              T_wc=torch.from_numpy(z[p + "T_wc"]), depth=torch.from_numpy(z[p + "depth"]),
+                              inv_depth_var=torch.from_numpy(z[p + "inv_depth_var"]),
+                              valid=torch.from_numpy(z[p + "valid"]), camera=m.camera, index=int(z[p + "index"]))
+                m.window.append(kf)
+                lm = z[p + "loss_map"]
+                if lm.size:
+                    m._loss_maps[kf.stamp_ns] = torch.from_numpy(lm)
+            m.rng.set_state(torch.from_numpy(z["rng_state"]))
+            m._pose_adam = {int(s): (np.array(a), np.array(b), int(c)) for s, a, b, c in
+                            zip(z["pose_adam/stamps"], z["pose_adam/m"], z["pose_adam/v"], z["pose_adam/steps"])}
+        except KeyError as e:
+            raise InputError(f"{path}: checkpoint lacks field {e}") from None
+        if len(pas):
+            m.passive.put(pas, m._poses)
+        m.render_count = int(meta["render_count"])
+        m.kf_count = int(meta["kf_count"])
+        m._queue = [int(s) for s in meta["queue"]]
+        m._rqueue = [int(s) for s in meta["rqueue"]]
+        if len(meta["slots"]) != cfg.window_size or m.gm.win_c.shape[1] != cfg.window_size:
+            raise InputError(f"{path}: checkpoint has a window of {len(meta['slots'])} keyframes, the config "
+                             f"{cfg.window_size}; load it with the same window_size")
+        m._slots = [int(s) for s in meta["slots"]]
+        m.counters.update(meta["counters"])
+        return m
+
+    # ================================================================== internals
+    def _check_keyframe(self, kf: Keyframe) -> None:
+        if not isinstance(kf, Keyframe):
+            raise InputError(f"add_keyframe: expected a Keyframe, got {type(kf).__name__}")
+        if int(kf.stamp_ns) in self._poses:
+            raise InputError(f"add_keyframe: keyframe {kf.stamp_ns} was already added")
+        if self._order and int(kf.stamp_ns) < self._order[-1]:
+            raise InputError(f"add_keyframe: keyframe {kf.stamp_ns} is older than the last one "
+                             f"({self._order[-1]}); keyframes must arrive in time order")
+        if kf.camera.is_distorted:
+            raise InputError(f"add_keyframe {kf.stamp_ns}: camera has lens distortion; undistort first")
+        if self.camera is None:
+            self.camera = kf.camera
+        elif kf.camera != self.camera:
+            raise InputError(f"add_keyframe {kf.stamp_ns}: camera model differs from the first keyframe's "
+                             f"({kf.camera.width}x{kf.camera.height} vs {self.camera.width}x{self.camera.height})")
+        if kf.image.ndim != 3 or kf.image.shape[2] < 3:
+            raise InputError(f"add_keyframe {kf.stamp_ns}: image must be (H, W, 3), got {tuple(kf.image.shape)}")
+        _check_pose(kf.T_wc.numpy(), f"keyframe {kf.stamp_ns} T_wc")
+        if not bool(torch.isfinite(kf.depth).all()):
+            raise InputError(f"add_keyframe {kf.stamp_ns}: depth has non-finite values (use 0 for invalid)")
+
+    def _pose_table(self) -> tuple[np.ndarray, np.ndarray]:
+        stamps = np.array(sorted(self._poses), dtype=np.int64)
+        pos = np.stack([self._poses[int(s)][:3, 3] for s in stamps]) if len(stamps) else np.zeros((0, 3))
+        return stamps, pos
+
+    def _peek_passive(self, center: np.ndarray, radius: float) -> Optional[GaussianMap]:
+        stamps, positions = self._pose_table()
+
+        def want(owners: np.ndarray) -> np.ndarray:
+            i = np.searchsorted(stamps, owners).clip(0, max(len(stamps) - 1, 0))
+            return np.linalg.norm(positions[i] - center, axis=1) < radius
+        return self.passive.take(want, self._poses, remove=False)
+
+    def _activated(self, gm: GaussianMap, means=None, quats=None, log_scales=None, opacity_logits=None, sh=None):
+        means = gm.means if means is None else means
+        quats = gm.quats if quats is None else quats
+        scales = torch.exp(gm.log_scales if log_scales is None else log_scales)
+        opac = torch.sigmoid(gm.opacity_logits if opacity_logits is None else opacity_logits)
+        sh = gm.sh if sh is None else sh
+        return means, quats, scales, opac, sh
+
+    def _rasterize(self, gm: GaussianMap, T_cw: torch.Tensor, camera: CameraModel, sample_ratio: float = 1.0,
+                   loss_map: Optional[torch.Tensor] = None, **override):
+        means, quats, scales, opac, sh = self._activated(gm, **override)
+        if self.cfg.sh_degree == 0:
+            colors = (sh[:, 0] * 0.28209479177387814 + 0.5).clamp_min(0.0)
+            return rasterize_2dgs(means, quats, scales, opac, colors, T_cw, camera, background=self._bg,
+                                  sample_ratio=sample_ratio, loss_map=loss_map)
+        return rasterize_2dgs(means, quats, scales, opac, sh, T_cw, camera, sh_degree=self.cfg.sh_degree,
+                              background=self._bg, sample_ratio=sample_ratio, loss_map=loss_map)
+
+    # ---------------------------------------------------------------- densification
+    @torch.no_grad()
+    def _densify(self, kf: Keyframe) -> dict:
+        cfg = self.cfg
+        cam = kf.camera
+        T_wc = kf.T_wc
+        T_cw = pose_inverse(T_wc)
+        usable = usable_depth_mask(kf, cfg.max_depth, cfg.max_depth_rel_std)
+        depth = kf.depth
+        n_del = 0
+        if len(self.gm):
+            out = self._rasterize(self.gm, T_cw, cam)
+            l1 = l1_map(out.color, kf.image)
+            self._loss_maps[kf.stamp_ns] = l1.to(torch.float32)
+            exp_d = out.depth / out.alpha.clamp_min(1e-10)
+            dmask = self._conflicts(out, l1, exp_d, kf, usable, T_cw)
+            n_del = int(dmask.sum())
+            if n_del:
+                self.gm = self.gm.remove(dmask)
+                out = self._rasterize(self.gm, T_cw, cam)
+            alpha = out.alpha
+            exp_d = out.depth / alpha.clamp_min(1e-10)
+            # low accumulation, or the observed surface lies clearly in front of what is rendered
+            behind = (alpha > cfg.add_alpha_threshold) & (exp_d > depth * (1 + cfg.delete_depth_rel))
+            low = usable & ((alpha < cfg.add_alpha_threshold) | behind)
+        else:
+            low = usable
+        n_add = num_to_add(low, cfg.points_per_keyframe)
+        if n_add > 0:
+            rc = sample_pixels(low, n_add, self.rng)
+            new = gaussians_from_pixels(kf, rc, cfg.sh_degree, cfg.init_opacity, cfg.init_scale_factor,
+                                        cfg.min_scale_px, cfg.max_scale_px, score_since=self.render_count,
+                                        normals_cam=depth_normals(depth, cam), window=cfg.window_size)
+            self.gm = GaussianMap.concat([self.gm, new.to(self.device)])
+        self.counters["added"] += n_add
+        self.counters["deleted"] += n_del
+        return {"added": n_add, "deleted": n_del, "low_fraction": float(low.float().mean())}
+
+    def _conflicts(self, out, l1: torch.Tensor, exp_d: torch.Tensor, kf: Keyframe, usable: torch.Tensor,
+                   T_cw: torch.Tensor) -> torch.Tensor:
+        """Gaussians to delete for a new keyframe (vectorised over Gaussians).
+
+        Each centre is projected into the keyframe. Inside the frustum a Gaussian is removed when
+        (a) it floats in front of the observed surface: its depth ``z < D_min (1 - delete_depth_rel)``,
+        ``D_min`` the nearest observed depth in the 5x5 neighbourhood of its pixel (so splats on an
+        object's silhouette are not taken for floaters), while the render there is in front of the
+        observed surface by the same margin; or (b) it lies on the observed surface
+        (``|z - D| < delete_depth_rel D``) and the RGB error stays above ``delete_rgb`` over the whole
+        3x3 neighbourhood (a persistent error, not a one-pixel misalignment at an edge); anywhere,
+        (c) when its projected radius exceeds ``delete_max_radius_frac`` x image diagonal.
+        """
+        cfg = self.cfg
+        cam = kf.camera
+        H, W = cam.height, cam.width
+        R = T_cw[:3, :3].to(torch.float32)
+        t = T_cw[:3, 3].to(torch.float32)
+        pc = self.gm.means @ R.T + t
+        z = pc[:, 2]
+        front = z > 1e-3
+        u = torch.round(pc[:, 0] / z.clamp_min(1e-6) * cam.fx + cam.cx)
+        v = torch.round(pc[:, 1] / z.clamp_min(1e-6) * cam.fy + cam.cy)
+        inside = front & (u >= 0) & (u <= W - 1) & (v >= 0) & (v <= H - 1)
+        ui = u.clamp(0, W - 1).long()
+        vi = v.clamp(0, H - 1).long()
+        D = kf.depth
+        Dinf = torch.where(usable, D, torch.full_like(D, float("inf")))
+        Dmin = -torch.nn.functional.max_pool2d(-Dinf[None, None], 5, stride=1, padding=2)[0, 0]
+        l1min = -torch.nn.functional.max_pool2d(-l1[None, None], 3, stride=1, padding=1)[0, 0]
+        ok = inside & usable[vi, ui]
+        rel = cfg.delete_depth_rel
+        Dg = D[vi, ui]
+        render_in_front = exp_d[vi, ui] < Dg * (1 - rel)
+        floater = ok & (z < Dmin[vi, ui] * (1 - rel)) & render_in_front
+        on_surface = ok & ((z - Dg).abs() < rel * Dg) & (l1min[vi, ui] > cfg.delete_rgb)
+        too_big = out.radii.to(self.device) > cfg.delete_max_radius_frac * math.hypot(W, H)
+        return floater | on_surface | too_big
+
+    # ---------------------------------------------------------------- training
+    def _next_kf(self, queue: list[int]) -> Keyframe:
+        if not queue:
+            perm = torch.randperm(len(self.window), generator=self.rng).tolist()
+            queue.extend(self.window[i].stamp_ns for i in perm)
+        s = queue.pop(0)
+        for kf in self.window:
+            if kf.stamp_ns == s:
+                return kf
+        raise RuntimeError("window keyframe vanished")  # pragma: no cover
+
+    def _kf_aux(self, kf: Keyframe) -> dict:
+        """Per-keyframe constant loss inputs, cached while the keyframe is in the window."""
+        a = self._aux.get(kf.stamp_ns)
+        if a is None or a["T"] is not kf.depth:
+            cfg = self.cfg
+            a = {"T": kf.depth, "usable": usable_depth_mask(kf, cfg.max_depth, cfg.max_depth_rel_std),
+                 "w_depth": depth_weight(kf.depth, kf.inv_depth_var, cfg.depth_rel_std0),
+                 "masked": (~kf.valid) & ((kf.depth <= 0) | (kf.depth > cfg.max_depth))}
+            self._aux[kf.stamp_ns] = a
+        return a
+
+    def _losses(self, out, kf: Keyframe, it_terms: dict, with_normal: bool = True, with_acc: bool = True):
+        cfg = self.cfg
+        img = kf.image
+        aux = self._kf_aux(kf)
+        l_rgb = rgb_loss(out.color, img, cfg.lambda_ssim)
+        l_d = depth_loss(out.depth, kf.depth, aux["w_depth"], aux["usable"])
+        total = cfg.lambda_rgb * l_rgb + cfg.lambda_depth * l_d
+        l_n = torch.zeros(())
+        l_a = torch.zeros(())
+        if with_normal and cfg.lambda_normal > 0 and self.render_count >= cfg.normal_loss_warmup:
+            a = out.alpha
+            exp_d = out.depth / a.clamp_min(1e-6)
+            n_d, ok = normals_from_depth(exp_d, kf.camera)
+            ok = ok & (a.detach() > 0.5)
+            l_n = normal_loss(out.normal, n_d, torch.ones_like(a), ok)
+            total = total + cfg.lambda_normal * l_n
+        if with_acc and cfg.lambda_acc > 0:
+            l_a = accumulation_loss(out.alpha, aux["masked"])
+            total = total + cfg.lambda_acc * l_a
+        it_terms.update(loss=float(total.detach()), rgb=float(l_rgb.detach()), depth=float(l_d.detach()),
+                        normal=float(l_n.detach()), acc=float(l_a.detach()))
+        return total
+
+    def _train_step(self) -> dict:
+        cfg = self.cfg
+        gm = self.gm
+        kf = self._next_kf(self._queue)
+        T_cw = pose_inverse(kf.T_wc)
+        leaves = {p: getattr(gm, p).detach().requires_grad_(True) for p in PARAM_FIELDS}
+        stale = self._loss_maps.get(kf.stamp_ns)
+        out = self._rasterize(gm, T_cw, kf.camera, sample_ratio=cfg.sample_ratio, loss_map=stale, **leaves)
+        l1 = l1_map(out.color.detach(), kf.image)
+        if cfg.sample_ratio < 1.0:
+            out.set_sample_map(l1)
+        terms: dict = {}
+        loss = self._losses(out, kf, terms)
+        loss.backward()
+        terms["psnr"] = -10 * math.log10(max(float((out.color.detach().clamp(0, 1) - kf.image).pow(2).mean()), 1e-12))
+        self._loss_maps[kf.stamp_ns] = l1.to(torch.float32)
+        with torch.no_grad():
+            # score manager bookkeeping (contribution of this render; error w.r.t. the last loss map)
+            err = out.error if out.error is not None else torch.zeros(len(gm))
+            S.record_render(gm.win_c, gm.win_e, gm.kf_id, gm.id_score, self._slots.index(kf.stamp_ns),
+                            out.contribution.to(torch.float32), err.to(torch.float32), kf.stamp_ns)
+            rows = ((out.radii > 0).to(self.device) & ~gm.stable).nonzero()[:, 0]
+            if rows.numel():
+                gm.adam_step[rows] += 1
+                lrs = self._lr_cols()
+                betas = (cfg.adam_betas[0], cfg.adam_betas[1])
+                for p in PARAM_FIELDS:
+                    g = leaves[p].grad
+                    if g is None:
+                        continue
+                    sparse_adam_step_fast(getattr(gm, p), g, getattr(gm, f"m_{p}"), getattr(gm, f"v_{p}"),
+                                          gm.adam_step, rows, lrs[p], betas, cfg.adam_eps)
+            self.render_count += 1
+            if cfg.score_manager:
+                self._score_control()
+        return terms
+
+    def _lr_cols(self) -> dict[str, np.ndarray]:
+        """Learning rate per column of each parameter viewed as (N, D)."""
+        cfg = self.cfg
+        lr_means = cfg.lr_means * (cfg.lr_means_outdoor_factor if cfg.outdoor else 1.0)
+        k = (cfg.sh_degree + 1) ** 2
+        lr_sh = np.full((k, 3), cfg.lr_sh / 20.0)
+        lr_sh[0] = cfg.lr_sh
+        return dict(means=np.full(3, lr_means), quats=np.full(4, cfg.lr_quats), log_scales=np.full(2, cfg.lr_scales),
+                    opacity_logits=np.full(1, cfg.lr_opacity), sh=lr_sh.reshape(-1))
+
+    @torch.no_grad()
+    def _score_control(self) -> None:
+        """Algorithm 1: status control every ``delta_status`` and storage control every
+        ``delta_storage`` training iterations (status first when both are due)."""
+        cfg = self.cfg
+        j = self.render_count
+        gm = self.gm
+        status_now = j % cfg.delta_status == 0
+        storage_now = j % cfg.delta_storage == 0
+        if not (status_now or storage_now):
+            return
+        s_c, s_e = S.window_scores(gm.win_c, gm.win_e)
+        judged = S.scored_long_enough(gm.score_since, j, cfg.min_score_age)
+        if status_now:
+            to_stable, to_unstable = S.status_control(gm.stable, s_c, s_e, judged, cfg.sc_status, cfg.se_status)
+            gm.stable[to_stable] = True
+            gm.stable[to_unstable] = False
+            S.reset_scores(gm.win_c, gm.win_e, gm.score_since, to_unstable, j)
+            self.counters["to_stable"] += int(to_stable.sum())
+            self.counters["to_unstable"] += int(to_unstable.sum())
+            s_c, s_e = S.window_scores(gm.win_c, gm.win_e)
+            judged = S.scored_long_enough(gm.score_since, j, cfg.min_score_age)
+        if storage_now:
+            prune = S.storage_control(gm.stable, s_c, judged, cfg.sc_storage, cfg.sc_status)
+            n = int(prune.sum())
+            if n:
+                self.gm = gm.remove(prune)
+                self.counters["pruned"] += n
+
+    # ---------------------------------------------------------------- pose refinement
+    def _move_active_by_owner(self, deltas: dict[int, np.ndarray]) -> None:
+        owners = np.array(sorted(deltas), dtype=np.int64)
+        kid = self.gm.kf_id.cpu().numpy()
+        i = np.searchsorted(owners, kid).clip(0, len(owners) - 1)
+        rows = owners[i] == kid
+        if not rows.any():
+            return
+        D = np.stack([deltas[int(s)] for s in owners])
+        self.gm.apply_rigid(torch.from_numpy(D[i[rows]]), torch.from_numpy(rows).to(self.device))
+
+    def _refine(self, mode: str, iters: int) -> None:
+        cfg = self.cfg
+        gm = self.gm
+        first = self._order[0] if (cfg.refine_fix_first and self._order) else None
+        if mode == "multi":
+            owners, inv = torch.unique(gm.kf_id, return_inverse=True)
+            owners = owners.cpu()
+            win = torch.tensor([kf.stamp_ns for kf in self.window], dtype=torch.int64)
+            extra = win[~torch.isin(win, owners)]
+            owners = torch.sort(torch.cat([owners, extra])).values
+            inv = torch.searchsorted(owners, gm.kf_id.cpu())
+        else:
+            owners = torch.tensor(sorted(kf.stamp_ns for kf in self.window), dtype=torch.int64)
+            inv = None
+        U = len(owners)
+        xi = torch.zeros(U, 6, dtype=torch.float64)
+        # Adam state per keyframe persists across calls (like a per-keyframe pose optimiser)
+        st = [self._pose_adam.get(int(o)) for o in owners.tolist()]
+        m = torch.stack([torch.from_numpy(a[0]) if a is not None else torch.zeros(6, dtype=torch.float64) for a in st]) \
+            if U else torch.zeros(0, 6, dtype=torch.float64)
+        v = torch.stack([torch.from_numpy(a[1]) if a is not None else torch.zeros(6, dtype=torch.float64) for a in st]) \
+            if U else torch.zeros(0, 6, dtype=torch.float64)
+        steps = torch.tensor([int(a[2]) if a is not None else 0 for a in st], dtype=torch.int64)
+        lr = torch.tensor([cfg.refine_lr_trans] * 3 + [cfg.refine_lr_rot] * 3, dtype=torch.float64)
+        fixed = (owners == first) if first is not None else torch.zeros(U, dtype=torch.bool)
+        b1, b2, eps = 0.9, 0.999, 1e-12
+        # pose deltas act in each keyframe's camera frame (paper eq. pose_refine): T_k <- T_k exp(xi_k),
+        # so rotations turn about the camera centre; keyframe k's Gaussians move by T_k exp(xi_k) T_k^-1
+        T_own = torch.from_numpy(np.stack([self._poses.get(int(o), np.eye(4)) for o in owners.tolist()])) \
+            if U else torch.zeros(0, 4, 4, dtype=torch.float64)
+        T_own_inv = pose_inverse(T_own)
+        for _ in range(iters):
+            kf = self._next_kf(self._rqueue)
+            r = int(torch.searchsorted(owners, torch.tensor(kf.stamp_ns)))
+            x = xi.clone().requires_grad_(True)
+            D = se3_exp_safe(x)                               # (U, 4, 4) camera-frame deltas
+            T_cw = pose_inverse(T_own[r] @ D[r])
+            if mode == "multi":
+                Wd = (T_own @ D @ T_own_inv)                  # world-frame motion of each owner's Gaussians
+                Dg = Wd.to(torch.float32)[inv]
+                means = (Dg[:, :3, :3] @ gm.means[:, :, None])[:, :, 0] + Dg[:, :3, 3]
+                qd = rotmat_to_quat(Wd[:, :3, :3]).to(torch.float32)[inv]
+                quats = quat_multiply(qd, gm.quats)
+                out = self._rasterize(gm, T_cw.to(torch.float32), kf.camera, sample_ratio=1.0,
+                                      means=means, quats=quats)
+            else:
+                out = self._rasterize(gm, T_cw.to(torch.float32), kf.camera, sample_ratio=1.0)
+            terms: dict = {}
+            loss = self._losses(out, kf, terms, with_normal=False, with_acc=False)
+            loss.backward()
+            g = x.grad.detach().clone()
+            if mode == "multi":
+                vis_owner = torch.zeros(U, dtype=torch.bool)
+                vis_owner[inv[out.radii > 0]] = True
+                vis_owner[r] = True
+            else:
+                vis_owner = torch.zeros(U, dtype=torch.bool)
+                vis_owner[r] = True
+            upd = vis_owner & ~fixed & torch.isfinite(g).all(1)
+            if not upd.any():
+                continue
+            steps[upd] += 1
+            m[upd] = b1 * m[upd] + (1 - b1) * g[upd]
+            v[upd] = b2 * v[upd] + (1 - b2) * g[upd] ** 2
+            t = steps[upd].to(torch.float64)[:, None]
+            xi[upd] -= lr * (m[upd] / (1 - b1 ** t)) / ((v[upd] / (1 - b2 ** t)).sqrt() + eps)
+        for i in (steps > 0).nonzero()[:, 0].tolist():
+            self._pose_adam[int(owners[i])] = (m[i].numpy().copy(), v[i].numpy().copy(), int(steps[i]))
+        # commit: T_k <- exp(xi_k) T_k; in multi mode the owners' Gaussians move with them
+        moved = (xi.abs().sum(1) > 0).nonzero()[:, 0]
+        if moved.numel() == 0:
+            return
+        D = se3_exp(xi[moved]).numpy()
+        deltas = {}
+        for j, i in enumerate(moved.tolist()):
+            s = int(owners[i])
+            new = self._poses[s] @ D[j]
+            deltas[s] = new @ np.linalg.inv(self._poses[s])   # world-frame motion (for the Gaussians)
+            self._poses[s] = new
+        for kf in self.window:
+            if kf.stamp_ns in deltas:
+                kf.T_wc = torch.from_numpy(self._poses[kf.stamp_ns].copy())
+        if mode == "multi":
+            self._move_active_by_owner(deltas)
+
+
+def _check_pose(T, what: str) -> np.ndarray:
+    T = np.asarray(T.detach().cpu().numpy() if torch.is_tensor(T) else T, dtype=np.float64)
+    if T.shape != (4, 4) or not np.isfinite(T).all():
+        raise InputError(f"{what}: expected a finite 4x4 pose, got shape {T.shape}")
+    R = T[:3, :3]
+    if np.abs(R @ R.T - np.eye(3)).max() > 1e-4 or abs(np.linalg.det(R) - 1) > 1e-4:
+        raise InputError(f"{what}: rotation block is not orthonormal")
+    return T

@@ -1,0 +1,258 @@
+"""Storage tiers (paper "GPU-CPU transfer"): an active set that is rendered and optimised, and a
+passive store in host memory that spills to disk files when a memory budget is exceeded.
+
+Tiering uses the pose of each Gaussian's ID(g) keyframe, not the Gaussian centres: a Gaussian is
+active when its keyframe lies within ``tau`` metres of the current camera, and the nearest ones are
+kept when the active set would exceed its cap.
+
+The passive store keeps whole :class:`GaussianMap` records (parameters, scores, optimiser state) as
+numpy arrays; a spilled chunk is one ``.npz`` file written atomically. Every round trip
+(memory or disk) is bit-exact. Each chunk remembers the poses its owner keyframes had when it was
+stored; if a keyframe pose changed meanwhile (loop closure, pose refinement) its Gaussians are moved
+rigidly by the pose change when they come back (paper eq. loop correction).
+"""
+from __future__ import annotations
+
+import itertools
+import os
+import shutil
+import tempfile
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable, Optional
+
+import numpy as np
+import torch
+
+from ..errors import InputError
+from ..util import atomic_write
+from .gaussians import ALL_FIELDS, GaussianMap
+
+
+# ----------------------------------------------------------------------------- pure tier functions
+
+
+def owner_positions(kf_id: torch.Tensor, stamps: np.ndarray, positions: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
+    """Per-Gaussian owner keyframe position ``(N, 3)`` and a found-mask ``(N,)``.
+
+    ``stamps`` (K,) int64 sorted ascending, ``positions`` (K, 3) float64 (camera centres, world).
+    """
+    n = kf_id.numel()
+    if len(stamps) == 0:
+        return torch.zeros(n, 3, dtype=torch.float64), torch.zeros(n, dtype=torch.bool)
+    st = torch.from_numpy(np.asarray(stamps, dtype=np.int64))
+    idx = torch.searchsorted(st, kf_id.cpu()).clamp_max(len(st) - 1)
+    found = st[idx] == kf_id.cpu()
+    pos = torch.from_numpy(np.asarray(positions, dtype=np.float64))[idx]
+    return pos, found
+
+
+def owner_distances(kf_id: torch.Tensor, stamps: np.ndarray, positions: np.ndarray,
+                    current: np.ndarray) -> torch.Tensor:
+    """Distance (m) from each Gaussian's ID(g) keyframe to ``current`` (3,); 0 for unknown owners."""
+    pos, found = owner_positions(kf_id, stamps, positions)
+    d = torch.linalg.norm(pos - torch.as_tensor(np.asarray(current, dtype=np.float64)), dim=-1)
+    return torch.where(found, d, torch.zeros_like(d))
+
+
+def active_split(dist: torch.Tensor, tau: float, max_active: int) -> torch.Tensor:
+    """Bool mask of Gaussians that stay active: ``dist < tau``, at most ``max_active`` (nearest first)."""
+    keep = dist < tau
+    n_keep = int(keep.sum())
+    if n_keep > max_active:
+        d = torch.where(keep, dist, torch.full_like(dist, float("inf")))
+        # stable sort: equal distances (same owner) keep their row order -> deterministic
+        order = torch.sort(d, stable=True).indices[:max_active]
+        keep = torch.zeros_like(keep)
+        keep[order] = True
+    return keep
+
+
+# ----------------------------------------------------------------------------- passive store
+
+
+@dataclass
+class _Chunk:
+    cid: int
+    n: int
+    nbytes: int
+    owners: np.ndarray                      # unique owner stamps (int64, sorted)
+    owner_T: np.ndarray                     # (U, 4, 4) owner poses when stored
+    arrays: Optional[dict] = None           # None when spilled
+    path: Optional[Path] = None
+
+
+@dataclass
+class PassiveStore:
+    """Host-memory store of inactive Gaussians, spilling whole chunks to ``.npz`` files.
+
+    ``memory_budget_bytes``: in-memory size above which the oldest chunks are written to disk;
+    ``spill_dir``: folder for those files (None = a private temporary folder, removed by
+    :meth:`close`).
+    """
+
+    memory_budget_bytes: int
+    spill_dir: Optional[str] = None
+    chunks: list = field(default_factory=list)
+    _ids: itertools.count = field(default_factory=itertools.count)
+    _own_dir: bool = False
+    spilled_total: int = 0                  # number of chunk writes so far
+    loaded_total: int = 0                   # number of chunk reads so far
+
+    def __post_init__(self) -> None:
+        self._dir: Optional[Path] = Path(self.spill_dir) if self.spill_dir else None
+
+    # ---------------------------------------------------------------- accounting
+    @property
+    def num_gaussians(self) -> int:
+        return int(sum(c.n for c in self.chunks))
+
+    @property
+    def memory_bytes(self) -> int:
+        return int(sum(c.nbytes for c in self.chunks if c.arrays is not None))
+
+    @property
+    def disk_bytes(self) -> int:
+        return int(sum(c.path.stat().st_size for c in self.chunks if c.arrays is None and c.path is not None
+                       and c.path.exists()))
+
+    @property
+    def num_spilled_chunks(self) -> int:
+        return int(sum(1 for c in self.chunks if c.arrays is None))
+
+    def owners(self) -> np.ndarray:
+        """All owner stamps present in the store (unique, sorted)."""
+        if not self.chunks:
+            return np.zeros(0, dtype=np.int64)
+        return np.unique(np.concatenate([c.owners for c in self.chunks]))
+
+    # ---------------------------------------------------------------- put / take
+    def put(self, gm: GaussianMap, poses: dict[int, np.ndarray]) -> None:
+        """Store ``gm`` (moved to host memory) as one chunk; ``poses``: stamp -> T_wc of owners now."""
+        if len(gm) == 0:
+            return
+        arrays = gm.to_numpy()
+        owners = np.unique(arrays["kf_id"])
+        owner_T = np.stack([np.asarray(poses.get(int(s), np.eye(4)), dtype=np.float64) for s in owners])
+        nbytes = int(sum(a.nbytes for a in arrays.values()))
+        self.chunks.append(_Chunk(next(self._ids), len(gm), nbytes, owners, owner_T, arrays))
+        self._spill_if_needed()
+
+    def take(self, want_owner: Callable[[np.ndarray], np.ndarray], poses: dict[int, np.ndarray],
+             remove: bool = True) -> Optional[GaussianMap]:
+        """Gaussians whose owner stamp satisfies ``want_owner(stamps) -> bool mask``.
+
+        They are returned (moved by the owner pose change since they were stored) and, if ``remove``,
+        deleted from the store; the chunk remainder stays. None when nothing matches.
+        """
+        out = []
+        kept = []
+        for c in self.chunks:
+            sel_owner = np.asarray(want_owner(c.owners), dtype=bool)
+            if not sel_owner.any():
+                kept.append(c)
+                continue
+            arrays = self._load(c)
+            rows = np.isin(arrays["kf_id"], c.owners[sel_owner])
+            part = {k: v[rows] for k, v in arrays.items()}
+            gm = GaussianMap.from_numpy(part)
+            _apply_pose_changes(gm, c.owners, c.owner_T, poses)
+            out.append(gm)
+            if remove:
+                if c.path is not None and c.path.exists():
+                    c.path.unlink()
+                rest = ~rows
+                if rest.any():
+                    ra = {k: v[rest] for k, v in arrays.items()}
+                    o = np.unique(ra["kf_id"])
+                    keep_T = c.owner_T[np.searchsorted(c.owners, o)]
+                    kept.append(_Chunk(next(self._ids), int(rest.sum()),
+                                       int(sum(a.nbytes for a in ra.values())), o, keep_T, ra))
+            else:
+                kept.append(c)
+        if remove:
+            self.chunks = kept
+            self._spill_if_needed()
+        if not out:
+            return None
+        return GaussianMap.concat(out)
+
+    def all(self, poses: dict[int, np.ndarray]) -> Optional[GaussianMap]:
+        """Every stored Gaussian (copies, moved by pose changes), the store unchanged."""
+        return self.take(lambda o: np.ones(len(o), dtype=bool), poses, remove=False)
+
+    def clear(self) -> None:
+        for c in self.chunks:
+            if c.path is not None and c.path.exists():
+                c.path.unlink()
+        self.chunks = []
+
+    def close(self) -> None:
+        """Delete spill files (and the private spill folder)."""
+        self.clear()
+        if self._own_dir and self._dir is not None and self._dir.exists():
+            shutil.rmtree(self._dir, ignore_errors=True)
+            self._dir = None
+            self._own_dir = False
+
+    # ---------------------------------------------------------------- spill / load
+    def _spill_dir(self) -> Path:
+        if self._dir is None:
+            self._dir = Path(tempfile.mkdtemp(prefix="vings_passive_"))
+            self._own_dir = True
+        self._dir.mkdir(parents=True, exist_ok=True)
+        return self._dir
+
+    def _spill_if_needed(self) -> None:
+        for c in self.chunks:
+            if self.memory_bytes <= self.memory_budget_bytes:
+                break
+            if c.arrays is None:
+                continue
+            path = self._spill_dir() / f"chunk_{c.cid:08d}.npz"
+            arrays = c.arrays
+
+            def _w(tmp: str, arrays=arrays) -> None:
+                with open(tmp, "wb") as f:
+                    np.savez(f, **arrays)
+            atomic_write(path, _w)
+            c.path = path
+            c.arrays = None
+            self.spilled_total += 1
+
+    def _load(self, c: _Chunk) -> dict:
+        if c.arrays is not None:
+            return c.arrays
+        if c.path is None or not c.path.exists():
+            raise InputError(f"passive Gaussian chunk file missing: {c.path}")
+        with np.load(c.path) as z:
+            arrays = {k: z[k] for k in ALL_FIELDS}
+        self.loaded_total += 1
+        return arrays
+
+    def __del__(self) -> None:  # best effort: private temp folders do not outlive the store
+        try:
+            if self._own_dir:
+                self.close()
+        except Exception:
+            pass
+
+
+def _apply_pose_changes(gm: GaussianMap, owners: np.ndarray, owner_T: np.ndarray,
+                        poses: dict[int, np.ndarray]) -> None:
+    """Move ``gm``'s Gaussians by ``T_now @ T_stored^-1`` of their owner where the pose changed."""
+    if not poses or len(gm) == 0:
+        return
+    now = np.stack([np.asarray(poses.get(int(s), owner_T[i]), dtype=np.float64) for i, s in enumerate(owners)])
+    changed = np.any(now != owner_T, axis=(1, 2))
+    if not changed.any():
+        return
+    delta = now @ np.linalg.inv(owner_T)
+    idx = np.searchsorted(owners, gm.kf_id.numpy())
+    rows = torch.from_numpy(changed[idx])
+    gm.apply_rigid(torch.from_numpy(delta[idx][changed[idx]]), rows)
+
+
+def spill_dir_size(path: str | os.PathLike) -> int:
+    p = Path(path)
+    return int(sum(f.stat().st_size for f in p.glob("*.npz"))) if p.exists() else 0
