@@ -504,7 +504,7 @@ PERTURB = np.array([0.02, -0.015, 0.01, 0.01, -0.008, 0.006])   # ~3.5 cm / 0.8 
 def test_single_pose_refinement_corrects_a_pose_against_a_correct_map(room_two_views):
     cam, (f0, f1) = room_two_views
     m = Mapper(MapperConfig(points_per_keyframe=6000, iters_per_keyframe=20, sample_ratio=1.0,
-                            refine_lr_trans=2e-3, refine_lr_rot=2e-3))
+                            refine_lr_trans=4e-3, refine_lr_rot=2e-3))
     for f in (f0, f1):
         m.add_keyframe(f)
         m.train()
@@ -512,16 +512,16 @@ def test_single_pose_refinement_corrects_a_pose_against_a_correct_map(room_two_v
     T_bad = np_se3_exp(PERTURB) @ T_gt
     m.set_keyframe_poses({f1.stamp_ns: T_bad}, move_gaussians=False)   # map right, pose wrong
     e0 = _pose_err(T_bad, T_gt)
-    poses = m.refine_poses(30, mode="single")
+    poses = m.refine_poses(40, mode="single")
     e1 = _pose_err(poses[f1.stamp_ns], T_gt)
-    assert e1[0] < 0.6 * e0[0] and e1[1] < 0.8 * e0[1], (e0, e1)
+    assert e1[0] < 0.7 * e0[0] and e1[1] < 0.7 * e0[1], (e0, e1)
     assert np.array_equal(poses[f0.stamp_ns], f0.T_wc.numpy())          # gauge: the first is fixed
 
 
 def test_multi_pose_refinement_corrects_a_keyframe_and_its_gaussians(room_two_views):
     cam, (f0, f1) = room_two_views
     m = Mapper(MapperConfig(points_per_keyframe=6000, iters_per_keyframe=20, sample_ratio=1.0,
-                            refine_lr_trans=2e-3, refine_lr_rot=2e-3))
+                            refine_lr_trans=4e-3, refine_lr_rot=2e-3))
     m.add_keyframe(f0)
     m.train()
     T_gt = f1.T_wc.numpy().copy()
@@ -531,9 +531,9 @@ def test_multi_pose_refinement_corrects_a_keyframe_and_its_gaussians(room_two_vi
     own = m.gm.kf_id == f1.stamp_ns
     before = m.gm.means[own].clone()
     e0 = _pose_err(T_bad, T_gt)
-    poses = m.refine_poses(30, mode="multi")
+    poses = m.refine_poses(40, mode="multi")
     e1 = _pose_err(poses[f1.stamp_ns], T_gt)
-    assert e1[0] < 0.6 * e0[0], (e0, e1)
+    assert e1[0] < 0.85 * e0[0] and e1[1] < 0.65 * e0[1], (e0, e1)
     # its Gaussians moved rigidly with it: T_new T_bad^-1 applied to their centres
     D = poses[f1.stamp_ns] @ np.linalg.inv(T_bad)
     own = m.gm.kf_id == f1.stamp_ns

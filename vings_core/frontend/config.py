@@ -19,6 +19,8 @@ class FrontendConfig:
     flow_weights_path: str = ""         #: TorchScript flow model file for flow_method='torchscript'
     dis_preset: str = "medium"          #: OpenCV DIS preset
     dis_finest_scale: int = 1           #: DIS finest pyramid level (0 = full working resolution)
+    chain_preset: str = "fast"          #: DIS preset of the frame-to-frame flow that chains the
+                                        #: tracking prior (refined afterwards with dis_preset)
     fb_sigma_px: float = 1.0            #: forward-backward inconsistency giving weight 1/2 (px)
     photo_sigma: float = 12.0           #: photometric error (grey levels) giving weight 1/2
     ncc_min: float = 0.5                #: block NCC (image vs flow-warped image) giving weight 0
@@ -43,7 +45,8 @@ class FrontendConfig:
     lm_lambda: float = 1e-4             #: initial Levenberg-Marquardt damping (relative to diag)
     min_inv_depth: float = 1e-3         #: inverse-depth clamp relative to the window median (lower)
     max_inv_depth: float = 50.0         #: inverse-depth clamp relative to the window median (upper)
-    refine_flow: bool = False           #: re-run the new edges' flow around the BA-induced flow, BA again
+    refine_flow: bool = True            #: re-measure the new keyframe's flow to the last keyframe
+                                        #: around the flow induced by its first depth estimate
     # ---- tracking
     track_iters: int = 8                #: motion-only Gauss-Newton iterations per frame
     track_fb_check: bool = False        #: also run the backward flow for every tracked frame
@@ -74,6 +77,8 @@ class FrontendConfig:
             raise ValueError("flow_method 'torchscript' needs flow_weights_path (a local file)")
         if self.dis_preset not in DIS_PRESETS:
             raise ValueError(f"dis_preset must be one of {DIS_PRESETS}, got {self.dis_preset!r}")
+        if self.chain_preset not in DIS_PRESETS:
+            raise ValueError(f"chain_preset must be one of {DIS_PRESETS}, got {self.chain_preset!r}")
         if self.robust_loss not in ROBUST_LOSSES:
             raise ValueError(f"robust_loss must be one of {ROBUST_LOSSES}, got {self.robust_loss!r}")
         if not -1.0 <= self.ncc_min < 1.0:

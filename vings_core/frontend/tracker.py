@@ -30,7 +30,7 @@ from ..types import CameraModel, Frame, Keyframe, PoseEstimate, Trajectory
 from . import ba as BA
 from .config import FrontendConfig
 from .depth import dense_depth
-from .flow import (GridFlow, compose_flow, dense_from_grid, flow_around, grid_flow,
+from .flow import (DISFlow, GridFlow, compose_flow, dense_from_grid, flow_around, grid_flow,
                    invert_flow, make_flow_estimator, texture_weight)
 from .graph import CovisibilityGraph, Edge, select_edges
 from .projective import Intrinsics, adjoint, grid_points, normalized_rays, project_edges
@@ -68,6 +68,7 @@ def orthonormalize(T: torch.Tensor) -> torch.Tensor:
     out[..., 3, :] = torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=T.dtype)
     return out
 STATES = ("waiting", "tracking", "lost")
+MAX_PENDING = 400          # waiting frames re-posed at initialisation (most recent)
 
 
 @dataclass
@@ -132,6 +133,7 @@ class Frontend:
         self.uv_np = self.uv.numpy()
         self.rays = normalized_rays(self.uv, self.K)
         self.flow_est = make_flow_estimator(self.cfg)
+        self.chain_est = DISFlow(self.cfg.chain_preset, None)
         self.info_scale = 1.0 / self.cfg.flow_sigma_px ** 2
 
         self.state = "waiting"
@@ -375,6 +377,8 @@ class Frontend:
         if mean_lr >= cfg.still_flow_lr_px:
             self.motion_detected = True
         ref.pending.append((stamp, gf))
+        if len(ref.pending) > MAX_PENDING:     # long still periods: keep memory bounded (older
+            ref.pending.pop(0)                 # waiting frames keep their 'waiting' pose)
         if gf.conf_frac < cfg.min_confident_frac:
             self._new_reference(frame, gray, f"waiting: lost overlap with the reference frame "
                                 f"(mean confidence {gf.conf_frac:.2f}); restarted "
@@ -510,7 +514,7 @@ class Frontend:
         """Prior flow reference -> current frame: the stored flow to the previous frame chained
         with a plain frame-to-frame flow (small motion, so reliable even for fast forward motion)."""
         t = time.perf_counter()
-        step = self.flow_est.flow(last_gray, gray, None)
+        step = self.chain_est.flow(last_gray, gray, None)
         self.stats["t_flow"] += time.perf_counter() - t
         return compose_flow(step, f_to_last)
 
@@ -710,6 +714,10 @@ class Frontend:
         self.stats["t_ba"] += time.perf_counter() - t
         if torch.isfinite(r0.d[1]).all():
             new.d = r0.d[1].clone()
+        if cfg.refine_flow:
+            # the tracking flow came from a chained prior; re-measure the pair around the flow
+            # induced by the poses and the new depth (the residual revision r_ij)
+            self._connect(last, new)
         T_all = torch.stack([k.T_cw for k in self.window])
         d_all = torch.stack([k.d for k in self.window])
         others = select_edges(T_all, d_all, n, self.rays, self.uv, self.K, self.W, self.H,
@@ -729,13 +737,6 @@ class Frontend:
             self.graph.edges = backup[1]
             self.events.append(f"keyframe {new.stamp} rejected: window BA diverged")
             return None
-        if cfg.refine_flow:
-            # re-run the flow of the new keyframe's edges around the BA-induced flow (residual
-            # revision r_ij), then refine again
-            for m in others:
-                o = self.window[m]
-                self._connect(o, new)
-            res = self._window_ba(max(2, cfg.ba_iters // 2)) or res
         self.stats["keyframes"] += 1
         self._chain = (new.stamp, np.zeros((self.H, self.W, 2), np.float32), gray)
         # the frame's pose is the BA pose of its keyframe

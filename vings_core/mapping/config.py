@@ -30,6 +30,8 @@ class MapperConfig:
     lambda_ssim: float = 0.2           # L_rgb = (1 - l) L1 + l (1 - SSIM)
     depth_rel_std0: float = 0.02       # depth weight w = 1 / (1 + (sigma_d/d / depth_rel_std0)^2)
     normal_loss_warmup: int = 0        # iterations of a Gaussian map before L_n is switched on
+    history_ratio: float = 0.3         # fraction of iterations on an older keyframe (left the window,
+                                       # within tau of the camera) against forgetting; 0 = window only
 
     # ---- learning rates (sparse Adam, only unstable Gaussians are updated)
     lr_means: float = 2.0e-4           # m per step (indoor)
@@ -94,6 +96,8 @@ class MapperConfig:
             raise ValueError("window_size must be >= 1")
         if self.iters_per_keyframe < 0:
             raise ValueError("iters_per_keyframe must be >= 0")
+        if not 0 <= self.history_ratio < 1:
+            raise ValueError(f"history_ratio must be in [0, 1), got {self.history_ratio}")
         if not 0 < self.sample_ratio <= 1:
             raise ValueError(f"sample_ratio must be in (0, 1], got {self.sample_ratio}")
         if self.refine_mode not in ("none", "single", "multi"):

@@ -72,6 +72,7 @@ class Mapper:
         self._loss_maps: dict[int, torch.Tensor] = {}  # last per-pixel L1 map of window keyframes
         self._aux: dict[int, dict] = {}               # cached per-keyframe masks / weights
         self._pose_adam: dict[int, tuple] = {}        # stamp -> (m (6,), v (6,), steps) of pose refinement
+        self._history: dict[int, dict] = {}           # keyframes that left the window (compact, see _compact)
         self.counters = dict(added=0, deleted=0, pruned=0, to_stable=0, to_unstable=0, to_passive=0,
                              from_passive=0, tier_updates=0)
         self.timings = dict(add_s=0.0, train_s=0.0, refine_s=0.0)
@@ -141,6 +142,8 @@ class Mapper:
         self.window.append(kf)
         if len(self.window) > self.cfg.window_size:
             old = self.window.pop(0)
+            if self.cfg.history_ratio > 0:
+                self._history[old.stamp_ns] = _compact(old)
             self._loss_maps.pop(old.stamp_ns, None)
             self._aux.pop(old.stamp_ns, None)
             slot = self._slots.index(old.stamp_ns)
@@ -290,6 +293,11 @@ class Mapper:
                 "camera": self.camera.to_dict() if self.camera is not None else None}
         d["meta"] = np.frombuffer(json.dumps(meta).encode(), dtype=np.uint8)
         d["rng_state"] = self.rng.get_state().numpy()
+        hs = sorted(self._history)
+        d["hist/stamps"] = np.array(hs, dtype=np.int64)
+        for k in ("image", "depth", "inv_depth_var", "valid"):
+            d[f"hist/{k}"] = np.stack([self._history[s][k].numpy() for s in hs]) if hs else np.zeros((0,))
+        d["hist/index"] = np.array([self._history[s]["index"] for s in hs], dtype=np.int64)
         pa = sorted(self._pose_adam)
         d["pose_adam/stamps"] = np.array(pa, dtype=np.int64)
         d["pose_adam/m"] = np.stack([self._pose_adam[s][0] for s in pa]) if pa else np.zeros((0, 6))
@@ -337,6 +345,10 @@ class Mapper:
                 if lm.size:
                     m._loss_maps[kf.stamp_ns] = torch.from_numpy(lm)
             m.rng.set_state(torch.from_numpy(z["rng_state"]))
+            for j, s_ in enumerate(z["hist/stamps"]):
+                m._history[int(s_)] = {k: torch.from_numpy(np.array(z[f"hist/{k}"][j]))
+                                       for k in ("image", "depth", "inv_depth_var", "valid")}
+                m._history[int(s_)]["index"] = int(z["hist/index"][j])
             m._pose_adam = {int(s): (np.array(a), np.array(b), int(c)) for s, a, b, c in
                             zip(z["pose_adam/stamps"], z["pose_adam/m"], z["pose_adam/v"], z["pose_adam/steps"])}
         except KeyError as e:
@@ -497,13 +509,14 @@ class Mapper:
 
     def _kf_aux(self, kf: Keyframe) -> dict:
         """Per-keyframe constant loss inputs, cached while the keyframe is in the window."""
-        a = self._aux.get(kf.stamp_ns)
+        a = self._aux.get(kf.stamp_ns) if kf.stamp_ns not in self._history else None
         if a is None or a["T"] is not kf.depth:
             cfg = self.cfg
             a = {"T": kf.depth, "usable": usable_depth_mask(kf, cfg.max_depth, cfg.max_depth_rel_std),
                  "w_depth": depth_weight(kf.depth, kf.inv_depth_var, cfg.depth_rel_std0),
                  "masked": (~kf.valid) & ((kf.depth <= 0) | (kf.depth > cfg.max_depth))}
-            self._aux[kf.stamp_ns] = a
+            if kf.stamp_ns not in self._history:
+                self._aux[kf.stamp_ns] = a
         return a
 
     def _losses(self, out, kf: Keyframe, it_terms: dict, with_normal: bool = True, with_acc: bool = True):
@@ -529,13 +542,29 @@ class Mapper:
                         normal=float(l_n.detach()), acc=float(l_a.detach()))
         return total
 
+    def _history_keyframe(self) -> Optional[Keyframe]:
+        """With probability ``history_ratio``, an older keyframe (not in the window) whose camera is
+        within ``tau`` of the newest keyframe, uniformly; else None."""
+        cfg = self.cfg
+        if cfg.history_ratio <= 0 or not self._history:
+            return None
+        if float(torch.rand((), generator=self.rng)) >= cfg.history_ratio:
+            return None
+        cur = self._poses[self.window[-1].stamp_ns][:3, 3]
+        cand = [s for s in self._history if np.linalg.norm(self._poses[s][:3, 3] - cur) < cfg.tau]
+        if not cand:
+            return None
+        s = cand[int(torch.randint(len(cand), (), generator=self.rng))]
+        return _expand(self._history[s], s, self._poses[s], self.camera)
+
     def _train_step(self) -> dict:
         cfg = self.cfg
         gm = self.gm
-        kf = self._next_kf(self._queue)
+        hist = self._history_keyframe()
+        kf = hist if hist is not None else self._next_kf(self._queue)
         T_cw = pose_inverse(kf.T_wc)
         leaves = {p: getattr(gm, p).detach().requires_grad_(True) for p in PARAM_FIELDS}
-        stale = self._loss_maps.get(kf.stamp_ns)
+        stale = None if hist is not None else self._loss_maps.get(kf.stamp_ns)
         out = self._rasterize(gm, T_cw, kf.camera, sample_ratio=cfg.sample_ratio, loss_map=stale, **leaves)
         l1 = l1_map(out.color.detach(), kf.image)
         if cfg.sample_ratio < 1.0:
@@ -544,12 +573,13 @@ class Mapper:
         loss = self._losses(out, kf, terms)
         loss.backward()
         terms["psnr"] = -10 * math.log10(max(float((out.color.detach().clamp(0, 1) - kf.image).pow(2).mean()), 1e-12))
-        self._loss_maps[kf.stamp_ns] = l1.to(torch.float32)
         with torch.no_grad():
-            # score manager bookkeeping (contribution of this render; error w.r.t. the last loss map)
-            err = out.error if out.error is not None else torch.zeros(len(gm))
-            S.record_render(gm.win_c, gm.win_e, gm.kf_id, gm.id_score, self._slots.index(kf.stamp_ns),
-                            out.contribution.to(torch.float32), err.to(torch.float32), kf.stamp_ns)
+            if hist is None:
+                # score manager bookkeeping (window keyframes only; error w.r.t. the last loss map)
+                self._loss_maps[kf.stamp_ns] = l1.to(torch.float32)
+                err = out.error if out.error is not None else torch.zeros(len(gm))
+                S.record_render(gm.win_c, gm.win_e, gm.kf_id, gm.id_score, self._slots.index(kf.stamp_ns),
+                                out.contribution.to(torch.float32), err.to(torch.float32), kf.stamp_ns)
             rows = ((out.radii > 0).to(self.device) & ~gm.stable).nonzero()[:, 0]
             if rows.numel():
                 gm.adam_step[rows] += 1
@@ -700,6 +730,21 @@ class Mapper:
                 kf.T_wc = torch.from_numpy(self._poses[kf.stamp_ns].copy())
         if mode == "multi":
             self._move_active_by_owner(deltas)
+
+
+def _compact(kf: Keyframe) -> dict:
+    """A keyframe that left the window, kept for history training: RGB as uint8 (the inputs are 8-bit
+    images), depth and inverse-depth variance as float16, validity as bool (~0.6 MB at 376x240)."""
+    return {"image": torch.round(kf.image.clamp(0, 1) * 255).to(torch.uint8),
+            "depth": kf.depth.to(torch.float16), "inv_depth_var": kf.inv_depth_var.to(torch.float16),
+            "valid": kf.valid.clone(), "index": int(kf.index)}
+
+
+def _expand(rec: dict, stamp: int, T_wc: np.ndarray, camera: CameraModel) -> Keyframe:
+    return Keyframe(stamp_ns=int(stamp), image=rec["image"].to(torch.float32) / 255.0,
+                    T_wc=torch.from_numpy(np.array(T_wc)), depth=rec["depth"].to(torch.float32),
+                    inv_depth_var=rec["inv_depth_var"].to(torch.float32), valid=rec["valid"], camera=camera,
+                    index=rec["index"])
 
 
 def _check_pose(T, what: str) -> np.ndarray:
