@@ -20,7 +20,7 @@ $(STAMP): requirements.txt setup.py setup.cfg
 install: $(STAMP)
 
 demo: $(STAMP)
-	$(VENV)/bin/vings sim --scene room --frames 120 --out $(DEMO_OUT)/room
+	$(VENV)/bin/vings sim --scene room --frames 80 --out $(DEMO_OUT)/room
 	$(VENV)/bin/vings run $(DEMO_OUT)/room --out $(DEMO_OUT)/run --sync
 	@echo "demo outputs: $(DEMO_OUT)/run (trajectory.tum, keyframes.tum, map.ply, metrics.json, renders/)"
 
