@@ -429,6 +429,7 @@ class Mapper:
         usable = usable_depth_mask(kf, cfg.max_depth, cfg.max_depth_rel_std)
         depth = kf.depth
         n_del = 0
+        self._last_delete = {}
         if len(self.gm):
             out = self._rasterize(self.gm, T_cw, cam)
             l1 = l1_map(out.color, kf.image)
@@ -455,7 +456,8 @@ class Mapper:
             self.gm = GaussianMap.concat([self.gm, new.to(self.device)])
         self.counters["added"] += n_add
         self.counters["deleted"] += n_del
-        return {"added": n_add, "deleted": n_del, "low_fraction": float(low.float().mean())}
+        return {"added": n_add, "deleted": n_del, "low_fraction": float(low.float().mean()),
+                "delete_rules": dict(getattr(self, "_last_delete", {}))}
 
     def _conflicts(self, out, l1: torch.Tensor, exp_d: torch.Tensor, kf: Keyframe, usable: torch.Tensor,
                    T_cw: torch.Tensor) -> torch.Tensor:
@@ -494,6 +496,8 @@ class Mapper:
         floater = ok & (z < Dmin[vi, ui] * (1 - rel)) & render_in_front
         on_surface = ok & ((z - Dg).abs() < rel * Dg) & (l1min[vi, ui] > cfg.delete_rgb)
         too_big = out.radii.to(self.device) > cfg.delete_max_radius_frac * math.hypot(W, H)
+        self._last_delete = {"floater": int(floater.sum()), "wrong_colour": int(on_surface.sum()),
+                             "too_big": int(too_big.sum())}
         return floater | on_surface | too_big
 
     # ---------------------------------------------------------------- training
