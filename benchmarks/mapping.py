@@ -97,13 +97,18 @@ class SimSequence:
 
 
 def eval_views(m: Mapper, seq: SimSequence, idx) -> dict:
-    ps, ss = [], []
+    """Mean PSNR / SSIM of renders at the GT poses of frames ``idx``; ``psnr_surface_db`` only over
+    pixels with a surface (GT depth > 0: the sky is not mapped)."""
+    ps, ss, pm = [], [], []
     for i in idx:
         r = m.render(seq.T_wc[i], seq.cam)
-        gt = seq.view(i)[0]
-        ps.append(psnr(r["color"], gt.astype(np.float32) / 255.0))
-        ss.append(ssim(r["color"], gt.astype(np.float32) / 255.0))
-    return {"psnr_db": float(np.mean(ps)), "ssim": float(np.mean(ss)), "views": len(ps)}
+        gt, depth = seq.view(i)
+        g = gt.astype(np.float32) / 255.0
+        ps.append(psnr(r["color"], g))
+        ss.append(ssim(r["color"], g))
+        pm.append(psnr(r["color"], g, mask=depth > 0))
+    return {"psnr_db": float(np.mean(ps)), "ssim": float(np.mean(ss)), "psnr_surface_db": float(np.mean(pm)),
+            "views": len(ps)}
 
 
 def run_mapping(seq: SimSequence, cfg: MapperConfig, kf_idx, poses: dict | None = None,
@@ -271,7 +276,7 @@ def exp_storage(a, cfg: MapperConfig) -> dict:
         trace.append({"kf": k, "frame": i, "active": m.num_active, "passive": m.num_passive,
                       "total": m.num_gaussians, "passive_mem_mb": m.passive.memory_bytes / 2**20,
                       "passive_disk_mb": m.passive.disk_bytes / 2**20})
-        if k == 8 and first_visit is None:
+        if k == 10 and first_visit is None:
             first_visit = eval_views(m, seq, start_views)
             log("storage: first visit of the start region:", first_visit)
         if k % 10 == 0:
@@ -293,6 +298,10 @@ def exp_storage(a, cfg: MapperConfig) -> dict:
            "first_visit_psnr_db": first_visit["psnr_db"] if first_visit else None,
            "revisit_psnr_db": back["psnr_db"],
            "revisit_drop_db": (first_visit["psnr_db"] - back["psnr_db"]) if first_visit else None,
+           "first_visit_psnr_surface_db": first_visit["psnr_surface_db"] if first_visit else None,
+           "revisit_psnr_surface_db": back["psnr_surface_db"],
+           "revisit_drop_surface_db": (first_visit["psnr_surface_db"] - back["psnr_surface_db"])
+           if first_visit else None,
            "wall_s": time.perf_counter() - t0,
            "trace_every_10": trace[::10]}
     m.close()
@@ -333,7 +342,7 @@ def main(argv=None) -> int:
     p.add_argument("--street-length", type=float, default=320.0)
     p.add_argument("--street-frames", type=int, default=None)
     p.add_argument("--street-kf-every", type=int, default=4)
-    p.add_argument("--street-iters", type=int, default=5)
+    p.add_argument("--street-iters", type=int, default=10)
     p.add_argument("--street-points", type=int, default=8000)
     p.add_argument("--max-active", type=int, default=60000)
     p.add_argument("--tau", type=float, default=40.0)

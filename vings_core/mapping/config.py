@@ -59,7 +59,7 @@ class MapperConfig:
     delete_depth_rel: float = 0.15     # centre in front of the observed surface by > this x depth
     delete_rgb: float = 0.35           # mean abs RGB error at the centre's pixel above which a
                                        # Gaussian lying on the observed surface is removed
-    delete_max_radius_frac: float = 0.25  # projected radius > frac * image diagonal is removed
+    delete_max_radius_frac: float = 0.15  # seen splats with projected radius > frac * diagonal go
 
     # ---- score manager (paper Algorithm 1); thresholds in pixel-weight units, see module doc
     score_manager: bool = True

@@ -169,17 +169,18 @@ class Mapper:
         iters = self.cfg.iters_per_keyframe if iters is None else int(iters)
         t0 = time.perf_counter()
         acc = dict(loss=0.0, rgb=0.0, depth=0.0, normal=0.0, acc=0.0, psnr=0.0)
+        done = 0
         for _ in range(iters):
             if not self.window or len(self.gm) == 0:
                 break
             terms = self._train_step()
+            done += 1
             for k in acc:
                 acc[k] += terms[k]
-        n = max(1, iters)
         dt = time.perf_counter() - t0
         self.timings["train_s"] += dt
-        out = {k: v / n for k, v in acc.items()}
-        out.update(iterations=iters, time_s=dt, num_active=len(self.gm), num_passive=self.passive.num_gaussians,
+        out = {k: v / max(1, done) for k, v in acc.items()}
+        out.update(iterations=done, time_s=dt, num_active=len(self.gm), num_passive=self.passive.num_gaussians,
                    num_stable=int(self.gm.stable.sum()), **self.counters)
         return out
 
@@ -469,8 +470,8 @@ class Mapper:
         object's silhouette are not taken for floaters), while the render there is in front of the
         observed surface by the same margin; or (b) it lies on the observed surface
         (``|z - D| < delete_depth_rel D``) and the RGB error stays above ``delete_rgb`` over the whole
-        3x3 neighbourhood (a persistent error, not a one-pixel misalignment at an edge); anywhere,
-        (c) when its projected radius exceeds ``delete_max_radius_frac`` x image diagonal.
+        3x3 neighbourhood (a persistent error, not a one-pixel misalignment at an edge); or (c) it is
+        seen (contribution > 0) with a projected radius above ``delete_max_radius_frac`` x diagonal.
         """
         cfg = self.cfg
         cam = kf.camera
@@ -495,7 +496,10 @@ class Mapper:
         render_in_front = exp_d[vi, ui] < Dg * (1 - rel)
         floater = ok & (z < Dmin[vi, ui] * (1 - rel)) & render_in_front
         on_surface = ok & ((z - Dg).abs() < rel * Dg) & (l1min[vi, ui] > cfg.delete_rgb)
-        too_big = out.radii.to(self.device) > cfg.delete_max_radius_frac * math.hypot(W, H)
+        # only splats whose centre projects into the image and that are actually seen: Gaussians beside
+        # or behind the camera plane have huge clipped screen boxes but are not in this view
+        too_big = inside & (out.contribution.to(self.device) > 0) & \
+            (out.radii.to(self.device) > cfg.delete_max_radius_frac * math.hypot(W, H))
         self._last_delete = {"floater": int(floater.sum()), "wrong_colour": int(on_surface.sum()),
                              "too_big": int(too_big.sum())}
         return floater | on_surface | too_big
