@@ -8,7 +8,8 @@ Rendered at 376x240 from a viewpoint offset from the first view (5 cm, 2 deg). L
 simulator's image of that viewpoint; the sampled backward (r = 0.5) keeps, per tile, the pixels of
 highest L1 error (RenderOutput.set_sample_map).
 
-Timings: warm-up first (numba compile excluded), median of --repeat runs, float32. `fwd_ms` is the
+Timings: warm-up first (numba compile excluded), median of --repeat runs, float32; the full and the
+sampled backward steps alternate, so load from other jobs hits both alike. `fwd_ms` is the
 whole forward (per-Gaussian set-up + kernels), `bwd_ms` the whole `loss.backward()` (kernels + chain
 rule to means/quats/scales/opacities/colours), wall clock; `*_cpu_ms` are the process CPU times of the
 same calls (summed over threads; on a machine shared with other jobs they show what the wall clock
@@ -17,6 +18,10 @@ rasterizer's own part of the backward (pixel selection + tile kernel + per-Gauss
 i.e. what the paper's "sample rasterizer" ablation times. `pairs_per_s`: pixel-Gaussian alpha
 evaluations of the forward per second of `fwd_ms`. `gaussians_per_pixel`: mean number of Gaussians composited
 per pixel. The reference is the pure-torch renderer with per-tile culling (same output as dense).
+`bwd_speedup_sampled` (wall), `bwd_speedup_sampled_cpu` (process CPU) and
+`bwd_raster_speedup_sampled` (rasterizer share only) are full / sampled backward time ratios.
+On a loaded machine run with NUMBA_NUM_THREADS=1 as well: the CPU-time ratio of one thread is far
+less disturbed than the wall time of two threads that other jobs keep descheduling.
 
 Usage: python benchmarks/raster.py [--repeat 7] [--sizes 10k,100k,300k] [--no-ref]
 Last line of output: one JSON object.
@@ -144,8 +149,11 @@ def bench_size(name: str, n: int, repeat: int, with_ref: bool) -> dict:
         step(1.0)
         step(0.5)
     fwd_ms, fwd_cpu = _time(lambda: fwd(1.0), repeat)
-    bwd = [step(1.0) for _ in range(repeat)]
-    bwd_s = [step(0.5) for _ in range(repeat)]
+    # full and sampled backward interleaved, so that load from other jobs hits both alike
+    bwd, bwd_s = [], []
+    for _ in range(repeat):
+        bwd.append(step(1.0))
+        bwd_s.append(step(0.5))
     out = bwd[-1][1]
     stats = out.stats
     med = statistics.median
@@ -188,6 +196,8 @@ def bench_size(name: str, n: int, repeat: int, with_ref: bool) -> dict:
         res["ref_bwd_ms"] = round(min(rb), 1)
         res["speedup_fwd_bwd_vs_ref"] = round((min(rf) + min(rb)) / (res["fwd_ms"] + res["bwd_ms"]), 1)
     res["bwd_speedup_sampled"] = round(res["bwd_ms"] / res["bwd_sampled_ms"], 2)
+    res["bwd_speedup_sampled_cpu"] = round(res["bwd_cpu_ms"] / res["bwd_sampled_cpu_ms"], 2)
+    res["bwd_raster_speedup_sampled"] = round(res["bwd_raster_ms"] / res["bwd_raster_sampled_ms"], 2)
     res["loadavg_1m"] = round(os.getloadavg()[0], 2)
     res["threads"] = __import__("numba").get_num_threads()
     return res

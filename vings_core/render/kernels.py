@@ -32,6 +32,8 @@ import numba
 import numpy as np
 from numba import njit, prange
 
+from .intrinsics import ctz64, prefetch_at, prefetch_row, prefetch_w
+
 TILE = 16
 TILE_PIX = TILE * TILE
 ALPHA_MIN = 1.0 / 255.0
@@ -44,6 +46,7 @@ NPARAM = 16
 NGRAD = 16          # gradient record: dL/dM (9), dL/dopacity, dL/drgb (3), dL/dnormal (3)
 AUX = 16            # per-Gaussian auxiliary record (see preprocess)
 NSTAT = 3           # per-pair forward stats: sum(alpha T), pixels touched, sum(L alpha T)
+PREFETCH = 3        # tile-list entries ahead whose records the tile kernels prefetch
 
 class tile_parallel:
     """Context manager: parallel regions launched inside use dynamic chunks of one iteration."""
@@ -229,20 +232,26 @@ def bin_tiles(order, bbox, ntiles, width, height, nchunk):
     """Bin depth-sorted Gaussians into 16x16 tiles, keeping the depth order inside each tile.
 
     ``order``: visible Gaussian ids sorted front to back. Returns ``tile_off (T+1)``, ``gids (P)``
-    (the Gaussians of tile ``t`` are ``gids[tile_off[t]:tile_off[t+1]]``), ``gstart (V+1)`` and
-    ``gslot (P)``: tile-list entry ``j`` writes its per-pair results to row ``gslot[j]`` of a
-    Gaussian-major buffer, where the rows of ``order[s]`` are ``gstart[s]:gstart[s+1]``
-    (contiguous, so the per-Gaussian reduction streams).
+    (the Gaussians of tile ``t`` are ``gids[tile_off[t]:tile_off[t+1]]``), ``xstart (N+1)``,
+    ``gslot (P)`` and ``pbox (P)``. Tile-list entry ``j`` writes its per-pair results to row
+    ``gslot[j]`` of a buffer of ``N + xstart[N]`` rows: the first tile of Gaussian ``g`` writes
+    row ``g`` itself, its other tiles the extra rows ``N + xstart[g] .. N + xstart[g+1] - 1``, so
+    :func:`reduce_pairs` leaves the per-Gaussian sums in rows ``0..N-1`` in place and only touches
+    the Gaussians that span several tiles. ``pbox[j]``: the entry's screen box clipped to its tile,
+    in tile-local pixels, packed as bytes ``x0 | x1 << 8 | y0 << 16 | y1 << 24`` (the tile kernels
+    read it in tile-list order instead of fetching the scattered ``bbox`` row).
     """
     tiles_x = (width + TILE - 1) // TILE
     tiles_y = (height + TILE - 1) // TILE
     ntile = tiles_x * tiles_y
     nv = order.shape[0]
-    gstart = np.empty(nv + 1, np.int64)
-    gstart[0] = 0
-    for s in range(nv):
-        gstart[s + 1] = gstart[s] + ntiles[order[s]]
-    npair = gstart[nv]
+    n = ntiles.shape[0]
+    xstart = np.empty(n + 1, np.int64)
+    xstart[0] = 0
+    npair = 0
+    for g in range(n):
+        xstart[g + 1] = xstart[g] + max(ntiles[g] - 1, 0)
+        npair += ntiles[g]
     cb = np.empty(nchunk + 1, np.int64)
     for c in range(nchunk + 1):
         cb[c] = (nv * c) // nchunk
@@ -264,40 +273,56 @@ def bin_tiles(order, bbox, ntiles, width, height, nchunk):
     tile_off[ntile] = run
     gids = np.empty(npair, np.int32)
     gslot = np.empty(npair, np.int64)
+    pbox = np.empty(npair, np.uint32)
     for c in prange(nchunk):
         for s in range(cb[c], cb[c + 1]):
             g = order[s]
-            k = gstart[s]
-            for ty in range(bbox[g, 2] // TILE, bbox[g, 3] // TILE + 1):
-                for tx in range(bbox[g, 0] // TILE, bbox[g, 1] // TILE + 1):
+            k = g
+            bx0 = bbox[g, 0]
+            bx1 = bbox[g, 1]
+            by0 = bbox[g, 2]
+            by1 = bbox[g, 3]
+            for ty in range(by0 // TILE, by1 // TILE + 1):
+                ly0 = max(by0 - ty * TILE, 0)
+                ly1 = min(by1 - ty * TILE, TILE - 1)
+                for tx in range(bx0 // TILE, bx1 // TILE + 1):
+                    lx0 = max(bx0 - tx * TILE, 0)
+                    lx1 = min(bx1 - tx * TILE, TILE - 1)
                     t = ty * tiles_x + tx
                     pos = cursor[c, t]
                     cursor[c, t] = pos + 1
                     gids[pos] = g
                     gslot[pos] = k
-                    k += 1
-    return tile_off, gids, gstart, gslot
+                    pbox[pos] = lx0 | (lx1 << 8) | (ly0 << 16) | (ly1 << 24)
+                    k = n + xstart[g] if k == g else k + 1
+    return tile_off, gids, xstart, gslot, pbox
 
 
 @njit(parallel=True, cache=True)
-def reduce_pairs(pair_buf, order, gstart, out):
-    """``out[order[s]] = sum of pair_buf[gstart[s]:gstart[s+1]]`` (rows of ``out`` not in
-    ``order`` are left untouched)."""
-    k = pair_buf.shape[1]
-    for s in prange(order.shape[0]):
-        g = order[s]
-        for c in range(k):
-            out[g, c] = pair_buf[0, c] * 0
-        for q in range(gstart[s], gstart[s + 1]):
+def reduce_pairs(buf, used, xstart, ntiles):
+    """Per-Gaussian sums of the per-pair rows, in place (row layout: :func:`bin_tiles`).
+
+    Row ``g < N`` of ``buf`` becomes the sum of Gaussian ``g``'s rows (row ``g``, then its extra
+    rows ``N + xstart[g] ...``) that have ``used[q] != 0`` (every row when ``used`` is empty);
+    rows not used are never read, so they may hold garbage. Gaussians without tiles get zeros."""
+    n = ntiles.shape[0]
+    k = buf.shape[1]
+    every = used.shape[0] == 0
+    for g in prange(n):
+        if ntiles[g] == 0 or not (every or used[g] != 0):
             for c in range(k):
-                out[g, c] += pair_buf[q, c]
+                buf[g, c] = 0
+        for q in range(n + xstart[g], n + xstart[g + 1]):
+            if every or used[q] != 0:
+                for c in range(k):
+                    buf[g, c] += buf[q, c]
 
 
 # ------------------------------------------------------------------------------ forward
 
 
 @njit(parallel=True, cache=True, error_model="numpy")
-def forward_tiles(params, aux, bbox, tile_off, gids, gslot, cst, width, height, xs, ys, bg, loss,
+def forward_tiles(params, aux, pbox, tile_off, gids, gslot, cst, width, height, xs, ys, bg, loss,
                   has_loss, out_rgb, out_depth, out_normal, out_alpha, out_dist, out_T, out_last,
                   out_count, out_d1, out_d2, pair_stats, tile_evals):
     """Front-to-back compositing of every tile. Fills the per-pixel outputs, the saved state of
@@ -337,6 +362,13 @@ def forward_tiles(params, aux, bbox, tile_off, gids, gslot, cst, width, height, 
         while j < end:
             if ndone == npix:
                 break
+            if j + PREFETCH < end:
+                ga = gids[j + PREFETCH]
+                prefetch_row(params, ga)
+                prefetch_at(params, ga, NPARAM - 1)
+                prefetch_row(aux, ga)
+                prefetch_at(aux, ga, 12)
+                prefetch_w(pair_stats, gslot[j + PREFETCH])
             g = gids[j]
             m0 = params[g, 0]
             m1 = params[g, 1]
@@ -367,10 +399,11 @@ def forward_tiles(params, aux, bbox, tile_off, gids, gslot, cst, width, height, 
             cc1 = aux[g, 11]
             cc2 = aux[g, 12]
             mm8 = da * (one - dn / m8)
-            x0 = max(bbox[g, 0], px0)
-            x1 = min(bbox[g, 1], px1)
-            y0 = max(bbox[g, 2], py0)
-            y1 = min(bbox[g, 3], py1)
+            pb = pbox[j]
+            x0 = px0 + (pb & 255)
+            x1 = px0 + ((pb >> 8) & 255)
+            y0 = py0 + ((pb >> 16) & 255)
+            y1 = py0 + (pb >> 24)
             sw = zero
             se = zero
             cnt = 0
@@ -518,19 +551,45 @@ def select_pixels(score, ratio, out_sel):
                 out_sel[py0 + q // tw, px0 + q % tw] = 1
 
 
+# rows of a 64-bit word of a 16x16 pixel mask (4 rows of 16 bits): _ROWS_FROM[a] = rows >= a,
+# _ROWS_BELOW[b] = rows < b (a, b in 0..4)
+_ROWS_FROM = np.array([0xFFFFFFFFFFFFFFFF, 0xFFFFFFFFFFFF0000, 0xFFFFFFFF00000000,
+                       0xFFFF000000000000, 0], dtype=np.uint64)
+_ROWS_BELOW = np.array([0, 0x000000000000FFFF, 0x00000000FFFFFFFF, 0x0000FFFFFFFFFFFF,
+                        0xFFFFFFFFFFFFFFFF], dtype=np.uint64)
+_REP_ROWS = np.uint64(0x0001000100010001)
+
+
+@njit(cache=True, inline="always")
+def _box_word(cols, w, ly0, ly1):
+    """Bits of word ``w`` (rows ``4w .. 4w+3``, bit ``16 (y - 4w) + x``) of a 16x16 pixel mask
+    inside rows ``[ly0, ly1]``, for the column pattern ``cols`` (the box's columns repeated in the
+    four rows). Branch-free."""
+    a = min(max(ly0 - 4 * w, 0), 4)
+    b = min(max(ly1 - 4 * w + 1, 0), 4)
+    return cols & _ROWS_FROM[a] & _ROWS_BELOW[b]
+
+
 @njit(parallel=True, cache=True, error_model="numpy")
-def backward_tiles(params, aux, bbox, tile_off, gids, gslot, cst, width, height, xs, ys, bg, T_final,
+def backward_tiles(params, aux, pbox, tile_off, gids, gslot, cst, width, height, xs, ys, bg, T_final,
                    last, d1, d2, g_rgb, g_depth, g_normal, g_alpha, g_dist, sel, pair_grad,
-                   tile_evals):
+                   pair_used, tile_evals):
     """Back-to-front pass over the selected pixels (``sel != 0``) of every tile.
 
     Rebuilds ``T`` from the saved final transmittance (``T_i = T_{i+1} / (1 - alpha_i)``) and keeps
     per pixel ``R = sum_{k>i} w_k g_k + T_N bg.dL/dC``, so ``dL/dalpha_i = T_i g_i - R / (1 -
-    alpha_i)`` where ``g_i`` gathers the colour, depth, normal, alpha and distortion terms. The
-    selected pixels of every tile row are compacted, so a Gaussian visits exactly the selected
-    pixels of its box (unselected ones cost nothing). For each (tile, Gaussian) pair the sum over
-    the tile's selected pixels of dL/d(M, opacity, rgb, normal) goes to row ``gslot[j]`` of
-    ``pair_grad``; every alpha is recomputed with the forward's exact expressions.
+    alpha_i)`` where ``g_i`` gathers the colour, depth, normal, alpha and distortion terms. For each
+    (tile, Gaussian) pair the sum over the tile's selected pixels of dL/d(M, opacity, rgb, normal)
+    goes to row ``gslot[j]`` of ``pair_grad``; every alpha is recomputed with the forward's exact
+    expressions. ``pair_used[gslot[j]]`` is set to 1 when the pair touched a selected pixel, else
+    to 0 and its ``pair_grad`` row is left unwritten (:func:`reduce_pairs` skips it).
+
+    Work is proportional to the selected pixels: the tile keeps a 256-bit mask of its *live*
+    pixels (selected, and not behind their last contributor: pixel ``p`` joins when the pass
+    reaches entry ``last[p] - 1``), each pair ANDs it with its box mask, skips at once when
+    nothing is left (no record loaded) and otherwise visits exactly the set bits. The records of
+    the pair a few entries ahead, and its gradient row, are prefetched, so the scattered
+    per-Gaussian memory does not stall every pair.
     """
     tiles_x = (width + TILE - 1) // TILE
     tiles_y = (height + TILE - 1) // TILE
@@ -543,6 +602,7 @@ def backward_tiles(params, aux, bbox, tile_off, gids, gslot, cst, width, height,
     near = cst[_NEAR]
     da = cst[_DA]
     dn = cst[_DN]
+    bit1 = np.uint64(1)
     for t in prange(tiles_x * tiles_y):
         tx = t % tiles_x
         ty = t // tiles_x
@@ -554,24 +614,20 @@ def backward_tiles(params, aux, bbox, tile_off, gids, gslot, cst, width, height,
         end = tile_off[t + 1]
         # per-pixel state: T, R (= sum_{k>i} w_k g_k + T_N bg.dC), loss grads, totals
         st = np.zeros((TILE_PIX, 16), params.dtype)
-        plast = np.zeros(TILE_PIX, np.int32)
-        # selected pixels of each tile row, compacted: x offsets rsel[ry, :n] and prefix counts
-        # rcb[ry, lx] = number of selected pixels left of lx, so a Gaussian visits exactly the
-        # selected pixels of its box (no per-pixel test on unselected ones)
-        rsel = np.zeros((TILE, TILE), np.int64)
-        rcb = np.zeros((TILE, TILE + 1), np.int64)
+        plast = np.zeros(TILE_PIX, np.int64)
+        spix = np.empty(TILE_PIX, np.int64)
+        nsel = 0
         maxlast = 0
         for y in range(py0, py1 + 1):
-            ry = y - py0
-            nrow = 0
             for x in range(px0, px1 + 1):
-                rcb[ry, x - px0] = nrow
                 if sel[y, x] == 0:
                     continue
-                rsel[ry, nrow] = x - px0
-                nrow += 1
-                p = (y - py0) * TILE + (x - px0)
                 lp = last[y, x]
+                if lp == 0:
+                    continue  # nothing composited here
+                p = (y - py0) * TILE + (x - px0)
+                spix[nsel] = p
+                nsel += 1
                 plast[p] = lp
                 if lp > maxlast:
                     maxlast = lp
@@ -591,15 +647,45 @@ def backward_tiles(params, aux, bbox, tile_off, gids, gslot, cst, width, height,
                 st[p, 11] = one - tf        # A_tot
                 st[p, 12] = d1[y, x]        # sum w m
                 st[p, 13] = d2[y, x]        # sum w m^2
-            for lx in range(px1 - px0 + 1, TILE + 1):
-                rcb[ry, lx] = nrow
         for j in range(start + maxlast, end):
-            q = gslot[j]
-            for c in range(NGRAD):
-                pair_grad[q, c] = zero
+            pair_used[gslot[j]] = 0
+        # live pixels join in order of decreasing last-contributor index
+        keys = np.empty(nsel, np.int64)
+        for k in range(nsel):
+            keys[k] = -plast[spix[k]]
+        joins = spix[:nsel][np.argsort(keys, kind="mergesort")]
+        live = np.zeros(4, np.uint64)
+        mw = np.zeros(4, np.uint64)
+        kj = 0
         evals = 0
         for j in range(start + maxlast - 1, start - 1, -1):
             jl = j - start
+            while kj < nsel and plast[joins[kj]] > jl:
+                p = joins[kj]
+                live[p >> 6] |= bit1 << np.uint64(p & 63)
+                kj += 1
+            if j - PREFETCH >= start:
+                ga = gids[j - PREFETCH]
+                prefetch_row(params, ga)
+                prefetch_at(params, ga, NPARAM - 1)
+                prefetch_row(aux, ga)
+                prefetch_at(aux, ga, 12)
+                prefetch_w(pair_grad, gslot[j - PREFETCH])
+            q = gslot[j]
+            pb = pbox[j]
+            lx0 = pb & 255
+            lx1 = (pb >> 8) & 255
+            ly0 = int((pb >> 16) & 255)
+            ly1 = int(pb >> 24)
+            cols = ((bit1 << np.uint64(lx1 + 1)) - (bit1 << np.uint64(lx0))) * _REP_ROWS
+            anyb = np.uint64(0)
+            for w in range(4):
+                mw[w] = _box_word(cols, w, ly0, ly1) & live[w]
+                anyb |= mw[w]
+            if anyb == 0:
+                pair_used[q] = 0
+                continue
+            pair_used[q] = 1
             g = gids[j]
             m0 = params[g, 0]
             m1 = params[g, 1]
@@ -637,10 +723,6 @@ def backward_tiles(params, aux, bbox, tile_off, gids, gslot, cst, width, height,
             w1 = m4 - my * m7
             w2 = m5 - my * m8
             im8 = one / m8
-            x0 = max(bbox[g, 0], px0)
-            x1 = min(bbox[g, 1], px1)
-            y0 = max(bbox[g, 2], py0)
-            y1 = min(bbox[g, 3], py1)
             gm0 = zero
             gm1 = zero
             gm2 = zero
@@ -657,41 +739,29 @@ def backward_tiles(params, aux, bbox, tile_off, gids, gslot, cst, width, height,
             gn0 = zero
             gn1 = zero
             gn2 = zero
-            for y in range(y0, y1 + 1):
-                ry = y - py0
-                i0 = rcb[ry, x0 - px0]
-                i1 = rcb[ry, x1 - px0 + 1]
-                if i0 == i1:
-                    continue
-                yf = ys[y]
-                dy = yf - my
-                dy2 = dy * dy
-                ey0 = cc0 - dy * bb0
-                ey1 = cc1 - dy * bb1
-                ey2 = cc2 - dy * bb2
-                hv0 = dy * m6 - w0
-                hv1 = dy * m7 - w1
-                hv2 = dy * m8 - w2
-                for i in range(i0, i1):
-                    lx = rsel[ry, i]
-                    p = ry * TILE + lx
-                    if jl >= plast[p]:
-                        continue  # behind the pixel's last contributor
+            for w in range(4):
+                bits = mw[w]
+                while bits != 0:
+                    p = (w << 6) | int(ctz64(bits))
+                    bits &= bits - bit1
                     evals += 1
-                    xf = xs[px0 + lx]
+                    xf = xs[px0 + (p & 15)]
+                    yf = ys[py0 + (p >> 4)]
                     dx = xf - mx
-                    rho = two * (dx * dx + dy2)
-                    c0 = dx * aa0 + ey0
-                    c1 = dx * aa1 + ey1
-                    c2 = dx * aa2 + ey2
+                    dy = yf - my
+                    rho = two * (dx * dx + dy * dy)
+                    # c = h_u x h_v = (x - mx) A - (y - my) B + C, same expressions as the forward
+                    c0 = dx * aa0 + (cc0 - dy * bb0)
+                    c1 = dx * aa1 + (cc1 - dy * bb1)
+                    c2 = dx * aa2 + (cc2 - dy * bb2)
                     s = c0 * c0 + c1 * c1
                     c22 = c2 * c2
-                    q = m6 * c0 + m7 * c1 + m8 * c2
-                    use3 = s < rho * c22 and q * c2 > near * c22
+                    qz = m6 * c0 + m7 * c1 + m8 * c2
+                    use3 = s < rho * c22 and qz * c2 > near * c22
                     r = zero
                     if use3:
-                        r = one / (c22 * q)
-                        rho = s * q * r
+                        r = one / (c22 * qz)
+                        rho = s * qz * r
                     if rho > kcut:
                         continue
                     gauss = np.exp(-half * rho)
@@ -703,7 +773,7 @@ def backward_tiles(params, aux, bbox, tile_off, gids, gslot, cst, width, height,
                         continue
                     om = one - alpha
                     ti = st[p, 0] / om
-                    w = alpha * ti
+                    wt = alpha * ti
                     dcr = st[p, 2]
                     dcg = st[p, 3]
                     dcb = st[p, 4]
@@ -716,10 +786,10 @@ def backward_tiles(params, aux, bbox, tile_off, gids, gslot, cst, width, height,
                     s1 = st[p, 12]
                     s2 = st[p, 13]
                     if use3:
-                        ic = c2 * q * r
+                        ic = c2 * qz * r
                         u = c0 * ic
                         v = c1 * ic
-                        depth = q * ic
+                        depth = qz * ic
                         invd = c2 * c22 * r
                     else:
                         ic = zero
@@ -731,15 +801,15 @@ def backward_tiles(params, aux, bbox, tile_off, gids, gslot, cst, width, height,
                     gk = (dcr * cr + dcg * cg + dcb * cb + ddep * depth + dn0 * n0 + dn1 * n1
                           + dn2 * n2 + st[p, 9] + ddist * (mm * mm * atot - two * mm * s1 + s2))
                     dl_dalpha = ti * gk - st[p, 1] / om
-                    st[p, 1] += w * gk
+                    st[p, 1] += wt * gk
                     st[p, 0] = ti
-                    gcr += w * dcr
-                    gcg += w * dcg
-                    gcb += w * dcb
-                    gn0 += w * dn0
-                    gn1 += w * dn1
-                    gn2 += w * dn2
-                    dl_ddepth = w * ddep + ddist * two * w * (mm * atot - s1) * (da * dn * invd * invd)
+                    gcr += wt * dcr
+                    gcg += wt * dcg
+                    gcb += wt * dcb
+                    gn0 += wt * dn0
+                    gn1 += wt * dn1
+                    gn2 += wt * dn2
+                    dl_ddepth = wt * ddep + ddist * two * wt * (mm * atot - s1) * (da * dn * invd * invd)
                     dl_drho = zero
                     if not clamped:
                         go += gauss * dl_dalpha
@@ -756,6 +826,9 @@ def backward_tiles(params, aux, bbox, tile_off, gids, gslot, cst, width, height,
                         hu0 = dx * m6 - u0
                         hu1 = dx * m7 - u1
                         hu2 = dx * m8 - u2
+                        hv0 = dy * m6 - w0
+                        hv1 = dy * m7 - w1
+                        hv2 = dy * m8 - w2
                         # c = h_u x h_v:  dL/dh_u = h_v x e,  dL/dh_v = e x h_u
                         fu0 = hv1 * e2 - hv2 * e1
                         fu1 = hv2 * e0 - hv0 * e2
@@ -779,7 +852,6 @@ def backward_tiles(params, aux, bbox, tile_off, gids, gslot, cst, width, height,
                         gm2 += gmx * im8
                         gm5 += gmy * im8
                         gm8 += dl_ddepth - (gmx * mx + gmy * my) * im8
-            q = gslot[j]
             pair_grad[q, 0] = gm0
             pair_grad[q, 1] = gm1
             pair_grad[q, 2] = gm2
@@ -871,9 +943,29 @@ def project_bwd(means, quats, scales, sign, dpar, Rcw, fx, fy, cx, cy, want_pose
                 d_quats, d_scales, d_pose):
     """Chain rule of :func:`project_fwd`: from ``dpar = dL/d record (N, 16)`` to dL/d means,
     quats (through the normalisation), scales, and per-Gaussian contributions to dL/dR_cw (9,
-    row-major) and dL/dt_cw (3) in ``d_pose (N, 12)`` when ``want_pose``."""
+    row-major) and dL/dt_cw (3) in ``d_pose (N, 12)`` when ``want_pose``. Gaussians whose
+    geometric gradient (``dL/dM``, ``dL/dnormal``) is zero (culled, or no selected pixel) get zeros
+    without the chain rule."""
     n = means.shape[0]
     for i in prange(n):
+        active = False
+        for c in range(9):
+            if dpar[i, c] != 0:
+                active = True
+        for c in range(13, 16):
+            if dpar[i, c] != 0:
+                active = True
+        if not active:
+            for c in range(3):
+                d_means[i, c] = 0
+            for c in range(4):
+                d_quats[i, c] = 0
+            d_scales[i, 0] = 0
+            d_scales[i, 1] = 0
+            if want_pose:
+                for c in range(12):
+                    d_pose[i, c] = 0
+            continue
         qx = quats[i, 0]
         qy = quats[i, 1]
         qz = quats[i, 2]

@@ -149,8 +149,9 @@ def _forward_numpy(st: _State, params: np.ndarray, bg: np.ndarray, loss: Optiona
     else:
         order = vis[np.argsort(z, kind="stable")]
     order = np.ascontiguousarray(order, dtype=np.int64)
-    tile_off, gids, gstart, gslot = K.bin_tiles(order, bbox, ntiles, W, H, _nchunk())
+    tile_off, gids, xstart, gslot, pbox = K.bin_tiles(order, bbox, ntiles, W, H, _nchunk())
     npair = gids.shape[0]
+    nrows = N + int(xstart[N])  # per-pair rows: one per Gaussian + extra tiles (bin_tiles)
     xs = np.arange(W, dtype=dt)
     ys = np.arange(H, dtype=dt)
     out_rgb = np.empty((H, W, 3), dt)
@@ -163,20 +164,20 @@ def _forward_numpy(st: _State, params: np.ndarray, bg: np.ndarray, loss: Optiona
     out_count = np.empty((H, W), np.int32)
     out_d1 = np.empty((H, W), dt)
     out_d2 = np.empty((H, W), dt)
-    pair_stats = np.empty((npair, K.NSTAT), dt)
+    pair_stats = np.empty((nrows, K.NSTAT), dt)
     ntile = tile_off.shape[0] - 1
     tile_evals = np.zeros(ntile, np.int64)
     has_loss = loss is not None
     loss_arr = loss.astype(dt, copy=False) if has_loss else np.zeros((1, 1), dt)
     with K.tile_parallel():
-        K.forward_tiles(params, aux, bbox, tile_off, gids, gslot, cst, W, H, xs, ys, bg, loss_arr,
+        K.forward_tiles(params, aux, pbox, tile_off, gids, gslot, cst, W, H, xs, ys, bg, loss_arr,
                         has_loss, out_rgb, out_depth, out_normal, out_alpha, out_dist, out_T,
                         out_last, out_count, out_d1, out_d2, pair_stats, tile_evals)
-    scores = np.zeros((N, K.NSTAT), dt)
-    if npair:
-        K.reduce_pairs(pair_stats, order, gstart, scores)
+    K.reduce_pairs(pair_stats, np.empty(0, np.uint8), xstart, ntiles)
+    scores = pair_stats[:N]
     st.params, st.aux, st.bbox, st.bg = params, aux, bbox, bg
-    st.order, st.tile_off, st.gids, st.gstart, st.gslot = order, tile_off, gids, gstart, gslot
+    st.order, st.tile_off, st.gids, st.xstart, st.gslot = order, tile_off, gids, xstart, gslot
+    st.pbox, st.ntiles, st.nrows = pbox, ntiles, nrows
     st.T_final, st.last, st.d1, st.d2 = out_T, out_last, out_d1, out_d2
     st.stats = {"pairs_evaluated": int(tile_evals.sum()), "tile_pairs": int(npair),
                 "visible": int(vis.size), "pairs_contributing": int(out_count.sum(dtype=np.int64))}
@@ -198,17 +199,17 @@ def _backward_numpy(st: _State, g_rgb, g_depth, g_normal, g_alpha, g_dist) -> tu
             score = (np.abs(g_rgb).sum(-1) + np.abs(g_depth) + np.abs(g_normal).sum(-1)
                      + np.abs(g_alpha) + np.abs(g_dist)).astype(np.float64)
         K.select_pixels(np.ascontiguousarray(score, dtype=np.float64), float(st.sample_ratio), sel)
-    npair = st.gids.shape[0]
-    pair_grad = np.empty((npair, K.NGRAD), dt)
+    pair_grad = np.empty((st.nrows, K.NGRAD), dt)
+    pair_used = np.empty(st.nrows, np.uint8)
     tile_evals = np.zeros(st.tile_off.shape[0] - 1, np.int64)
     with K.tile_parallel():
-        K.backward_tiles(st.params, st.aux, st.bbox, st.tile_off, st.gids, st.gslot,
+        K.backward_tiles(st.params, st.aux, st.pbox, st.tile_off, st.gids, st.gslot,
                          K.make_consts(dt, st.near, st.far), W, H, np.arange(W, dtype=dt),
                          np.arange(H, dtype=dt), st.bg, st.T_final, st.last, st.d1, st.d2,
-                         g_rgb, g_depth, g_normal, g_alpha, g_dist, sel, pair_grad, tile_evals)
-    grads = np.zeros((N, K.NGRAD), dt)
-    if npair:
-        K.reduce_pairs(pair_grad, st.order, st.gstart, grads)
+                         g_rgb, g_depth, g_normal, g_alpha, g_dist, sel, pair_grad, pair_used,
+                         tile_evals)
+    K.reduce_pairs(pair_grad, pair_used, st.xstart, st.ntiles)
+    grads = pair_grad[:N]
     selT = st.T_final * sel
     g_bg = np.einsum("hw,hwc->c", selT, g_rgb)
     st.stats["bwd_raster_ms"] = (time.perf_counter() - t0) * 1e3
