@@ -3,14 +3,20 @@
 Experiments on one synthetic `room` sequence:
 
 * ``parity``: the graph with back-pressure (`vings replay --wait-for-graph`, front end queue policy
-  ``backpressure``) versus `vings run --sync`: Sim(3) ATE of each (graph: the final /vings/path),
-  and their relative difference.
+  ``backpressure``) versus `vings run --sync` on the same MCAP with the same params file: Sim(3)
+  ATE of each (graph: the final /vings/path), their relative difference, and the front end alone
+  (no mapper) as a reference. Both exchange poses with the same classes and write-back policy
+  (``run.pose_writeback``; ``--writeback`` overrides it for both).
 * ``live``: replay at 20 Hz without back-pressure (policy ``keep_newest``): fraction of frames that
   get odometry, and publish -> odometry latency (receive wall clock minus publish wall clock) p50/p95.
-* ``resume``: the mapper is killed (SIGKILL) mid-run and started again: it resumes from its
-  checkpoint, and the final checkpoint holds the keyframes it had before the crash.
+* ``resume``: the mapper is killed (SIGKILL) mid-run, once its checkpoint holds keyframes and
+  while more are coming, and started again: it resumes from its checkpoint, the final checkpoint
+  holds every keyframe stamp of the pre-crash checkpoint with (nearly) the same poses (same world
+  frame), and the restarted mapper exits 0 on SIGINT.
 
     python benchmarks/ros_graph.py [--frames 120] [--width 376 --height 240] [--work DIR]
+                                   [--only parity,live,resume] [--writeback none|all|consistent]
+                                   [-p section.key=value ...]
 """
 from __future__ import annotations
 
@@ -59,6 +65,14 @@ class Listener:
             lambda m: self.odom.setdefault(header_ns(m.header), time.time_ns()), T.sensor_qos(1000))
         self.node.create_subscription(
             PathMsg, T.PATH_TOPIC, lambda m: setattr(self, "path", path_to_trajectory(m)), T.latched_qos(1))
+        from diagnostic_msgs.msg import DiagnosticArray
+        from msg_adapters.diagnostics import parse_diagnostic_array
+        self.diag: dict = {}
+
+        def _diag(m):
+            for name, st in parse_diagnostic_array(m)["status"].items():
+                self.diag[name] = st["values"]
+        self.node.create_subscription(DiagnosticArray, T.DIAGNOSTICS_TOPIC, _diag, T.sensor_qos(10))
         self.node.create_subscription(Image, T.RENDER_COLOR_TOPIC,
                                       lambda m: setattr(self, "renders", self.renders + 1), T.sensor_qos(10))
         self.ex = SingleThreadedExecutor()
@@ -83,7 +97,7 @@ class Listener:
         raise RuntimeError("graph did not come up")
 
     def reset(self) -> None:
-        self.odom, self.path, self.renders = {}, None, 0
+        self.odom, self.path, self.renders, self.diag = {}, None, 0, {}
 
     def close(self) -> None:
         self._stop = True
@@ -103,7 +117,24 @@ def node_proc(module: str, domain: int, params: list[str], log) -> subprocess.Po
                             start_new_session=True)
 
 
-def stop(p: subprocess.Popen, timeout: float = 200) -> int:
+def wait_checkpoint(ck: Path, timeout: float) -> set:
+    """Keyframe stamps of the checkpoint once it exists and holds at least one keyframe."""
+    from vings_core.errors import InputError
+    from vings_core.mapping import Mapper
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        if ck.exists():
+            try:
+                kfs = Mapper.load_checkpoint(ck).keyframe_poses()
+            except InputError:
+                kfs = {}
+            if kfs:
+                return set(kfs)
+        time.sleep(0.5)
+    return set()
+
+
+def stop(p: subprocess.Popen, timeout: float = 300) -> int:
     if p.poll() is None:
         os.killpg(p.pid, signal.SIGINT)
         try:
@@ -133,7 +164,13 @@ def main() -> None:
     ap.add_argument("--height", type=int, default=240)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--work", default=None)
+    ap.add_argument("--only", default="parity,live,resume", help="experiments to run (comma list)")
+    ap.add_argument("--writeback", default=None, choices=("none", "all", "consistent"),
+                    help="run.pose_writeback for both the offline run and the graph")
+    ap.add_argument("-p", "--param", action="append", default=[], metavar="SECTION.KEY=VALUE",
+                    help="extra ROS parameter for both graph nodes (e.g. ros.mapper_threads=1)")
     args = ap.parse_args()
+    only = set(args.only.split(","))
 
     from vings_core.io import open_source
     from vings_core.sim import generate
@@ -155,82 +192,152 @@ def main() -> None:
     t0 = time.perf_counter()
     off = work / "offline"
     mp = work / "bench_params.yaml"
-    mp.write_text("/**:\n  ros__parameters:\n    mapping:\n      iters_per_keyframe: 20\n      refine_iters: 3\n")
-    subprocess.run([sys.executable, "-m", "vings_ros.cli", "run", str(seq), "--out", str(off), "--sync",
-                    "--params", str(mp), "--no-progress"], stdout=log, stderr=subprocess.STDOUT, check=True)
-    ate_off = ate(read_tum(off / "trajectory.tum"), gt)
-    result["offline_sync"] = {"ate_sim3_m": ate_off, "wall_s": time.perf_counter() - t0}
+    text = "/**:\n  ros__parameters:\n    mapping:\n      iters_per_keyframe: 20\n      refine_iters: 3\n"
+    if args.writeback:
+        text += f"    run:\n      pose_writeback: {args.writeback}\n"
+    mp.write_text(text)
+    graph_params = ([] if not args.writeback else [f"run.pose_writeback={args.writeback}"]) + list(args.param)
+    result["uptime_start"] = os.getloadavg()
+    from vings_core.frontend import Frontend, FrontendConfig
+    from vings_core.config import load_section
+    fe_alone = Frontend(load_section(FrontendConfig, "frontend", str(mp)), src.calibration.camera)
+    frames = list(open_source(mcap).frames())
+    t1 = time.perf_counter()
+    for f in frames:
+        fe_alone.process(f)
+    fe_alone.finish()
+    fe_wall = time.perf_counter() - t1
+    # in-process, no ROS, same load: what the live graph's front end could reach at best
+    result["frontend_alone"] = {"ate_sim3_m": ate(fe_alone.trajectory(states=("tracking",)), gt),
+                                "fps": len(frames) / fe_wall, "loadavg": os.getloadavg()}
+    ate_off = None
+    if "parity" in only:
+        subprocess.run([sys.executable, "-m", "vings_ros.cli", "run", str(mcap), "--out", str(off), "--sync",
+                        "--params", str(mp), "--no-progress"], stdout=log, stderr=subprocess.STDOUT, check=True)
+        ate_off = ate(read_tum(off / "trajectory.tum"), gt)
+        result["offline_sync"] = {"ate_sim3_m": ate_off, "wall_s": time.perf_counter() - t0}
 
-    domain = 150 + os.getpid() % 50
+    # 201..232: the tests use 1..200; another run on the same domain with the same synthetic stamps
+    # would be counted as ours
+    domain = 201 + os.getpid() % 32
+    from vings_ros.ros_env import cleanup_fastdds_shm, shm_snapshot
+    snap = shm_snapshot()
     lis = Listener(domain)
     try:
-        # ---- parity: back-pressure graph
-        ck = work / "parity_ckpt.npz"
-        fe = node_proc("vings_ros.frontend_node", domain, ["ros.queue_policy=backpressure"], log)
-        ma = node_proc("vings_ros.mapper_node", domain, MAPPING + [f"ros.checkpoint_path={ck}", "ros.resume=false"], log)
-        lis.wait_for_graph()
-        t0 = time.perf_counter()
-        replay(mcap, domain, ["--rate", "0", "--wait-for-graph"], log)
-        stop(fe)
-        time.sleep(2.0)
-        stop(ma)
-        graph_traj = lis.path
-        ate_ros = ate(graph_traj, gt) if graph_traj is not None and len(graph_traj) >= 3 else None
-        result["parity"] = {"ate_sim3_m_graph": ate_ros, "ate_sim3_m_offline": ate_off,
-                            "rel_diff": (abs(ate_ros - ate_off) / ate_off) if ate_ros is not None and ate_off > 0 else None,
-                            "odometry_frames": len(lis.odom), "wall_s": time.perf_counter() - t0,
-                            "renders": lis.renders}
-
-        # ---- live: 20 Hz, keep newest
-        lis.reset()
-        pub_log = work / "publish_log.csv"
-        fe = node_proc("vings_ros.frontend_node", domain, ["ros.queue_policy=keep_newest"], log)
-        ma = node_proc("vings_ros.mapper_node", domain, MAPPING, log)
-        lis.wait_for_graph()
-        replay(mcap, domain, ["--rate", "1", "--publish-log", str(pub_log)], log)
-        time.sleep(3.0)
-        stop(fe)
-        stop(ma)
-        pubs = {}
-        for line in pub_log.read_text().splitlines()[1:]:
-            s, w = line.split(",")[:2]
-            pubs[int(s)] = int(w)
-        lat = np.array([(lis.odom[s] - pubs[s]) / 1e6 for s in pubs if s in lis.odom])
-        result["live_20hz"] = {"frames_published": len(pubs), "frames_with_odometry": int(len(lat)),
-                               "odometry_fraction": len(lat) / max(len(pubs), 1),
-                               "latency_ms_p50": float(np.percentile(lat, 50)) if len(lat) else None,
-                               "latency_ms_p95": float(np.percentile(lat, 95)) if len(lat) else None}
-
-        # ---- resume: kill the mapper mid-run, start it again
-        lis.reset()
-        ck = work / "resume_ckpt.npz"
-        if ck.exists():
-            ck.unlink()
-        mparams = MAPPING + [f"ros.checkpoint_path={ck}", "ros.checkpoint_period_s=1.0", "ros.resume=true"]
-        fe = node_proc("vings_ros.frontend_node", domain, ["ros.queue_policy=backpressure"], log)
-        ma = node_proc("vings_ros.mapper_node", domain, mparams, log)
-        lis.wait_for_graph()
-        half = stamps[len(stamps) // 2] - stamps[0]
-        replay(mcap, domain, ["--rate", "0", "--wait-for-graph", "--duration", f"{half / 1e9:.3f}"], log)
-        time.sleep(4.0)
-        os.killpg(ma.pid, signal.SIGKILL)   # crash
-        ma.wait()
-        from vings_core.mapping import Mapper
-        before = set(Mapper.load_checkpoint(ck).keyframe_poses()) if ck.exists() else set()
-        ma = node_proc("vings_ros.mapper_node", domain, mparams, log)
-        time.sleep(8.0)
-        replay(mcap, domain, ["--rate", "0", "--wait-for-graph", "--start", f"{half / 1e9 + 0.01:.3f}"], log)
-        stop(fe)
-        time.sleep(2.0)
-        rc = stop(ma)
-        after = set(Mapper.load_checkpoint(ck).keyframe_poses()) if ck.exists() else set()
-        result["resume"] = {"keyframes_before_crash": len(before), "keyframes_final": len(after),
-                            "all_pre_crash_keyframes_kept": bool(before) and before <= after,
-                            "mapper_exit_code": rc}
+        if "parity" in only:
+            result["parity"] = run_parity(lis, domain, mcap, gt, graph_params, ate_off, work, log)
+        if "live" in only:
+            result["live_20hz"] = run_live(lis, domain, mcap, graph_params, work, log)
+        if "resume" in only:
+            result["resume"] = run_resume(lis, domain, mcap, stamps, graph_params, work, log)
     finally:
         lis.close()
         log.close()
+        time.sleep(1.0)
+        # the SIGKILLed mapper leaves its Fast DDS segment and ports behind
+        result["shm_files_removed"] = len(cleanup_fastdds_shm(snap))
+    result["uptime_end"] = os.getloadavg()
     print(json.dumps(result))
+
+
+def run_parity(lis, domain, mcap, gt, graph_params, ate_off, work, log) -> dict:
+    """Back-pressure graph on the same MCAP as the offline --sync run."""
+    lis.reset()
+    ck = work / "parity_ckpt.npz"
+    fe = node_proc("vings_ros.frontend_node", domain, ["ros.queue_policy=backpressure"] + graph_params, log)
+    ma = node_proc("vings_ros.mapper_node", domain, MAPPING + graph_params +
+                   [f"ros.checkpoint_path={ck}", "ros.resume=false"], log)
+    lis.wait_for_graph()
+    t0 = time.perf_counter()
+    replay(mcap, domain, ["--rate", "0", "--wait-for-graph"], log)
+    wall = time.perf_counter() - t0
+    time.sleep(1.5)  # last diagnostics
+    diag = dict(lis.diag.get("vings/frontend", {}))
+    rc_fe = stop(fe)
+    time.sleep(2.0)
+    rc_ma = stop(ma)
+    graph_traj = lis.path
+    ate_ros = ate(graph_traj, gt) if graph_traj is not None and len(graph_traj) >= 3 else None
+    return {"ate_sim3_m_graph": ate_ros, "ate_sim3_m_offline": ate_off,
+            "rel_diff": (abs(ate_ros - ate_off) / ate_off) if ate_ros is not None and ate_off else None,
+            "odometry_frames": len(lis.odom), "replay_wall_s": wall, "renders": lis.renders,
+            "graph_corrections": {k: diag.get(k) for k in ("writeback_policy", "corrections_received",
+                                                          "corrections_applied", "corrections_rejected")},
+            "exit_codes": [rc_fe, rc_ma]}
+
+
+def run_live(lis, domain, mcap, graph_params, work, log) -> dict:
+    """20 Hz replay without back-pressure, keep-newest queue."""
+    lis.reset()
+    pub_log = work / "publish_log.csv"
+    fe = node_proc("vings_ros.frontend_node", domain, ["ros.queue_policy=keep_newest"] + graph_params, log)
+    ma = node_proc("vings_ros.mapper_node", domain, MAPPING + graph_params, log)
+    lis.wait_for_graph()
+    load = os.getloadavg()
+    lis.reset()
+    t_start = time.time_ns()
+    replay(mcap, domain, ["--rate", "1", "--publish-log", str(pub_log)], log)
+    time.sleep(3.0)
+    diag = dict(lis.diag.get("vings/frontend", {}))
+    stop(fe)
+    stop(ma)
+    pubs = {}
+    for line in pub_log.read_text().splitlines()[1:]:
+        st, w = line.split(",")[:2]
+        pubs[int(st)] = int(w)
+    # odometry received before its image was published cannot be ours (another graph on the domain)
+    foreign = sum(1 for st in pubs if st in lis.odom and lis.odom[st] < max(pubs[st], t_start))
+    lat = np.array([(lis.odom[st] - pubs[st]) / 1e6 for st in pubs
+                    if st in lis.odom and lis.odom[st] >= max(pubs[st], t_start)])
+    return {"frames_published": len(pubs), "frames_with_odometry": int(len(lat)),
+            "odometry_fraction": len(lat) / max(len(pubs), 1),
+            "latency_ms_p50": float(np.percentile(lat, 50)) if len(lat) else None,
+            "latency_ms_p95": float(np.percentile(lat, 95)) if len(lat) else None,
+            "frontend_frames_received": diag.get("frames_received"),
+            "frontend_frames_dropped": diag.get("frames_dropped"), "loadavg_at_start": load,
+            "odometry_not_ours": foreign}
+
+
+def run_resume(lis, domain, mcap, stamps, graph_params, work, log) -> dict:
+    """Kill -9 the mapper once its checkpoint holds keyframes (more are queued), restart it,
+    replay the rest; the final checkpoint must hold the pre-crash keyframes in the same frame."""
+    from vings_core.mapping import Mapper
+    lis.reset()
+    ck = work / "resume_ckpt.npz"
+    if ck.exists():
+        ck.unlink()
+    mparams = MAPPING + graph_params + [f"ros.checkpoint_path={ck}", "ros.checkpoint_period_s=5.0",
+                                        "ros.checkpoint_every_keyframes=5", "ros.resume=true"]
+    fe = node_proc("vings_ros.frontend_node", domain, ["ros.queue_policy=backpressure"] + graph_params, log)
+    ma = node_proc("vings_ros.mapper_node", domain, mparams, log)
+    lis.wait_for_graph()
+    half = stamps[len(stamps) // 2] - stamps[0]
+    replay(mcap, domain, ["--rate", "0", "--wait-for-graph", "--duration", f"{half / 1e9:.3f}"], log)
+    t_wait = time.monotonic()
+    before_stamps = wait_checkpoint(ck, 600)
+    waited = time.monotonic() - t_wait
+    os.killpg(ma.pid, signal.SIGKILL)   # crash, mid-run
+    ma.wait()
+    before = Mapper.load_checkpoint(ck).keyframe_poses() if ck.exists() else {}
+    lis.diag.pop("vings/mapper", None)
+    ma = node_proc("vings_ros.mapper_node", domain, mparams, log)
+    # the killed mapper's endpoints linger in discovery: wait for the new one's diagnostics
+    end = time.monotonic() + 120
+    while time.monotonic() < end and "vings/mapper" not in lis.diag:
+        time.sleep(0.2)
+    time.sleep(1.0)
+    replay(mcap, domain, ["--rate", "0", "--wait-for-graph", "--start", f"{half / 1e9 + 0.01:.3f}"], log)
+    rc_fe = stop(fe)
+    time.sleep(2.0)
+    rc = stop(ma)
+    after = Mapper.load_checkpoint(ck).keyframe_poses() if ck.exists() else {}
+    kept = [st for st in before if st in after]
+    shift = max((float(np.linalg.norm(after[st][:3, 3] - before[st][:3, 3])) for st in kept), default=None)
+    return {"keyframes_before_crash": len(before), "keyframes_final": len(after),
+            "new_keyframes_after_restart": len(set(after) - set(before)),
+            "all_pre_crash_keyframes_kept": bool(before) and set(before) <= set(after),
+            "pre_crash_keyframe_max_shift_m": shift, "s_waited_for_first_checkpoint": waited,
+            "mapper_exit_code": rc, "frontend_exit_code": rc_fe, "renders_after_restart": lis.renders}
 
 
 if __name__ == "__main__":

@@ -38,6 +38,13 @@ RENDER_DEPTH_TOPIC = "/vings/render/depth"
 RENDER_NORMAL_TOPIC = "/vings/render/normal"
 MAP_POINTS_TOPIC = "/vings/map/points"
 REFINED_KEYFRAMES_TOPIC = "/vings/keyframes/refined"
+#: nav_msgs/Path of pose *increments* from the mapper's refinement: pose i is the world-frame
+#: correction ``C`` (``T_new = C T_old``) of the keyframe stamped in its header. The front end
+#: applies the ones its write-back policy accepts (vings_core.pipeline.FrontendPoseLink).
+KEYFRAME_CORRECTIONS_TOPIC = "/vings/keyframes/corrections"
+#: nav_msgs/Path of front-end keyframe poses (absolute ``T_wc``) that changed since they were last
+#: exchanged (window BA); the mapper applies them as increments (MapperPoseLink).
+FRONTEND_KEYFRAMES_TOPIC = "/vings/frontend/keyframes"
 MARKERS_TOPIC = "/vings/markers"
 DIAGNOSTICS_TOPIC = "/diagnostics"
 
@@ -52,6 +59,7 @@ IMU_DEPTH = 1000       # 5 s at 200 Hz: IMU samples are never dropped
 CAMERA_INFO_DEPTH = 10
 ACK_DEPTH = 100
 OUTPUT_DEPTH = 10
+POSE_EXCHANGE_DEPTH = 100   # pose updates / corrections between the nodes: none may be lost
 
 
 def sensor_qos(depth: int) -> QoSProfile:

@@ -33,13 +33,14 @@ from .errors import InputError, VingsError
 from .eval.image import psnr, ssim
 from .eval.output import RunOutput, metrics_template, peak_rss_mb
 from .eval.traj import evaluate_trajectory
-from .geometry import rotation_angle_deg
+from .geometry import np_pose_inverse, np_se3_log, rotation_angle_deg
 from .io.base import Source
 from .types import Frame, Keyframe, Trajectory
 
 log = logging.getLogger("vings.run")
 
 CHECKPOINT_FILE = "checkpoint.pt"
+WRITEBACK_POLICIES = ("none", "all", "consistent")
 
 
 @dataclass
@@ -52,6 +53,13 @@ class RunConfig:
     ``eval_keyframes``/``eval_novel``: at most this many keyframes / non-keyframe frames are rendered
     for PSNR (evenly spaced). ``save_renders``: keyframe renders saved under renders/.
     ``checkpoint_every``: keyframes between map checkpoints (0 = only at the end).
+    ``pose_writeback``: what the front end does with the mapper's pose refinements (see
+    :class:`FrontendPoseLink`): ``none`` (never applied; the mapper is told to undo them),
+    ``all`` (every correction applied), ``consistent`` (applied only when the front end's own
+    visual evidence agrees: the corrections of keyframes in its BA window must pass a chi-square
+    test on the Schur-reduced pose information, at ``writeback_confidence``; corrections of
+    keyframes outside the window are not applied). The ROS graph reads the same fields (section
+    ``run``), so `vings run` and the nodes exchange poses the same way.
     """
 
     width: int = 0
@@ -66,10 +74,16 @@ class RunConfig:
     eval_novel: int = 40
     save_renders: int = 6
     checkpoint_every: int = 20
+    pose_writeback: str = "consistent"
+    writeback_confidence: float = 0.99
 
     def validate(self) -> None:
         if self.width < 0 or self.height < 0:
             raise ValueError("width/height must be >= 0")
+        if self.pose_writeback not in WRITEBACK_POLICIES:
+            raise ValueError(f"pose_writeback must be one of {WRITEBACK_POLICIES}, got {self.pose_writeback!r}")
+        if not 0 < self.writeback_confidence < 1:
+            raise ValueError(f"writeback_confidence must be in (0, 1), got {self.writeback_confidence}")
         if self.eval_keyframes < 0 or self.eval_novel < 0 or self.save_renders < 0:
             raise ValueError("eval_keyframes, eval_novel and save_renders must be >= 0")
 
@@ -138,6 +152,201 @@ class _GtKeyframer:
         return T, kf
 
 
+# ------------------------------------------------------------------------------ pose exchange
+#
+# The front end and the mapper both hold every keyframe pose and both change them: the front end's
+# window BA moves keyframes after it emitted them, the mapper's pose refinement moves them too. The
+# two sides exchange *increments*, never overwrite each other with absolute poses: an absolute pose
+# is stale by the time it arrives (the other side moved the keyframe meanwhile) and overwriting
+# with it silently undoes that move. (That was the bug behind `vings run --sync` ATE 0.0247 m vs
+# 0.0011 m for the graph: after every mapped keyframe the front end's newest window-BA poses were
+# replaced by the mapper's older ones.) Each side remembers, per keyframe, the last pose it
+# exchanged with the other side, so an increment is never applied twice and never echoed back.
+# `vings run` calls these classes directly; the nodes call the same classes across topics.
+
+
+def pose_correction(T_new: np.ndarray, T_old: np.ndarray) -> np.ndarray:
+    """World-frame left increment ``C`` with ``T_new = C @ T_old`` (4x4, T_wc convention)."""
+    return np.asarray(T_new, np.float64) @ np_pose_inverse(np.asarray(T_old, np.float64))
+
+
+def _differs(A: np.ndarray, B: np.ndarray, tol: float = 1e-7) -> bool:
+    return bool(np.abs(np.asarray(A) - np.asarray(B)).max() > tol)
+
+
+class MapperPoseLink:
+    """Mapper side of the pose exchange.
+
+    ``fe[s]``: the front end's pose of keyframe ``s`` as the mapper last learned it (packet pose,
+    then every update), advanced by the corrections the mapper sent. A front-end update ``P`` is
+    applied as the increment ``P fe[s]^-1`` to the mapper's pose (so the mapper's refinement is kept);
+    :meth:`refine` returns the mapper's refinement as increments for the front end."""
+
+    def __init__(self) -> None:
+        self.fe: dict[int, np.ndarray] = {}
+        #: updates for keyframes not added yet (the graph: still in the mapper's queue)
+        self.pending: dict[int, np.ndarray] = {}
+
+    def resumed(self, poses: dict[int, np.ndarray]) -> None:
+        """After loading a checkpoint: take the stored poses as the last exchanged ones."""
+        self.fe.update({int(s): np.array(T, np.float64) for s, T in poses.items()})
+
+    def keyframe_added(self, kf: Keyframe) -> None:
+        self.fe[int(kf.stamp_ns)] = kf.T_wc.detach().cpu().numpy().astype(np.float64).copy()
+
+    def apply_frontend_poses(self, mapper, poses: dict[int, np.ndarray]) -> int:
+        """Front-end keyframe poses (absolute ``T_wc``) -> increments on the mapper's poses.
+        Unknown stamps are ignored. Returns how many keyframes moved."""
+        have = mapper.keyframe_poses()
+        new = {}
+        for s, P in poses.items():
+            s = int(s)
+            if s not in have or s not in self.fe:
+                if s not in have:
+                    self.pending[s] = np.asarray(P, np.float64).copy()
+                    while len(self.pending) > 1000:
+                        self.pending.pop(min(self.pending))
+                continue
+            P = np.asarray(P, np.float64)
+            if not _differs(P, self.fe[s], 1e-12):
+                continue
+            new[s] = pose_correction(P, self.fe[s]) @ have[s]
+            self.fe[s] = P.copy()
+        if new:
+            mapper.set_keyframe_poses(new)
+        return len(new)
+
+    def refine(self, mapper) -> dict[int, np.ndarray]:
+        """Run the mapper's pose refinement; returns ``{stamp: C}`` world-frame increments of the
+        keyframes it moved (``T_new = C T_old``), to be offered to the front end."""
+        base = mapper.keyframe_poses()
+        refined = mapper.refine_poses()
+        out = {}
+        for s, T in refined.items():
+            if s in base and _differs(T, base[s], 1e-12):
+                C = pose_correction(T, base[s])
+                out[int(s)] = C
+                if s in self.fe:
+                    self.fe[s] = C @ self.fe[s]
+        return out
+
+
+class FrontendPoseLink:
+    """Front-end side of the pose exchange, with the write-back policy (``RunConfig.pose_writeback``).
+
+    ``sent[s]``: the pose of keyframe ``s`` the mapper holds as far as the front end knows (the
+    packet pose, every update sent, advanced by every correction received). :meth:`outgoing` returns
+    the keyframes whose front-end pose differs from it (window BA moved them, or a correction was
+    rejected: sending the front-end pose then makes the mapper undo it)."""
+
+    def __init__(self, cfg: Optional[RunConfig] = None) -> None:
+        self.cfg = cfg or RunConfig()
+        self.sent: dict[int, np.ndarray] = {}
+        self.stats = dict(corrections=0, applied=0, rejected=0, tests=0, tests_failed=0, last_q=None,
+                          last_q_limit=None)
+
+    def keyframe_sent(self, kf: Keyframe) -> None:
+        self.sent[int(kf.stamp_ns)] = kf.T_wc.detach().cpu().numpy().astype(np.float64).copy()
+
+    def outgoing(self, frontend) -> dict[int, np.ndarray]:
+        """Keyframe poses to send to the mapper (absolute ``T_wc``)."""
+        traj = frontend.keyframe_trajectory()
+        moved = {}
+        for s, P in zip(traj.stamps_ns.tolist(), traj.poses):
+            old = self.sent.get(int(s))
+            if old is not None and _differs(P, old):
+                moved[int(s)] = P.copy()
+                self.sent[int(s)] = P.copy()
+        return moved
+
+    def apply_corrections(self, frontend, corrections: dict[int, np.ndarray]) -> dict[int, np.ndarray]:
+        """Apply the mapper's increments the policy accepts; returns the applied ``{stamp: C}``."""
+        corrections = {int(s): np.asarray(C, np.float64) for s, C in corrections.items() if int(s) in self.sent}
+        if not corrections:
+            return {}
+        for s, C in corrections.items():
+            self.sent[s] = C @ self.sent[s]          # what the mapper now holds
+        self.stats["corrections"] += len(corrections)
+        accepted = self._accept(frontend, corrections)
+        if accepted:
+            frontend.set_poses({s: C @ frontend.pose(s) for s, C in accepted.items()})
+        self.stats["applied"] += len(accepted)
+        self.stats["rejected"] += len(corrections) - len(accepted)
+        return accepted
+
+    def _accept(self, frontend, corrections: dict[int, np.ndarray]) -> dict[int, np.ndarray]:
+        policy = self.cfg.pose_writeback
+        if policy == "all":
+            return dict(corrections)
+        if policy == "none":
+            return {}
+        ok, q, limit = correction_consistency(frontend, corrections, self.cfg.writeback_confidence)
+        if q is not None:
+            self.stats["tests"] += 1
+            self.stats["tests_failed"] += int(not ok)
+            self.stats["last_q"], self.stats["last_q_limit"] = q, limit
+        return ok
+
+
+def correction_consistency(frontend, corrections: dict[int, np.ndarray],
+                           confidence: float = 0.99) -> tuple[dict[int, np.ndarray], Optional[float], Optional[float]]:
+    """Which mapper corrections the front end's visual evidence allows.
+
+    The corrections of keyframes in the front end's BA window form a joint perturbation ``x`` of the
+    window poses (left tangent of ``T_cw``); its cost under the Schur-reduced pose information ``H``
+    of the last window BA (``frontend.pose_system``, 1/px^2 units: flow residuals over their
+    sigma) is ``q = x^T H x``, chi-square with ``6 n`` degrees of freedom if the correction were
+    within the front end's noise. They are accepted together iff ``q <= chi2.ppf(confidence, 6 n)``.
+    Keyframes outside the window are never accepted (no evidence to check them against).
+    Returns ``(accepted, q, limit)``; ``q``/``limit`` are None when no keyframe was in the window."""
+    from scipy.stats import chi2
+
+    ps = getattr(frontend, "pose_system", None)
+    if ps is None:
+        return {}, None, None
+    idx = {int(s): i for i, s in enumerate(ps.stamps_ns)}
+    inwin = {s: C for s, C in corrections.items() if s in idx}
+    if not inwin:
+        return {}, None, None
+    H = ps.H.detach().cpu().numpy().astype(np.float64)
+    x = np.zeros(H.shape[0])
+    for s, C in inwin.items():
+        T_wc = frontend.pose(s)
+        T_cw = np_pose_inverse(T_wc)
+        # T_cw' = T_cw C^-1 = exp(xi) T_cw  ->  xi = log(T_cw C^-1 T_wc)
+        xi = np_se3_log(T_cw @ np_pose_inverse(C) @ T_wc)
+        x[6 * idx[s]:6 * idx[s] + 6] = xi
+    q = float(x @ H @ x)
+    limit = float(chi2.ppf(confidence, 6 * len(inwin)))
+    return (dict(inwin) if q <= limit else {}), q, limit
+
+
+def map_keyframe(mapper, link: MapperPoseLink, kf: Keyframe, refine: bool = True, chunk: int = 0,
+                 stop: Optional[Callable[[], bool]] = None) -> tuple[dict, dict[int, np.ndarray]]:
+    """One mapping step, the same in `vings run` and ``mapper_node``: add the keyframe, train
+    ``iters_per_keyframe`` iterations (in chunks of ``chunk`` when > 0, ending early once ``stop()``
+    is true: prompt shutdown), then (``refine``) the pose refinement. Returns the last training
+    stats and the refinement as increments ``{stamp: C}`` for the front end."""
+    mapper.add_keyframe(kf)
+    link.keyframe_added(kf)
+    later = link.pending.pop(int(kf.stamp_ns), None)
+    if later is not None:   # the front end moved it while it waited in the queue
+        link.apply_frontend_poses(mapper, {int(kf.stamp_ns): later})
+    iters = int(mapper.cfg.iters_per_keyframe)
+    step = iters if chunk <= 0 else int(chunk)
+    stats: dict = {}
+    done = 0
+    while done < iters:
+        if stop is not None and stop():
+            break
+        n = min(step, iters - done)
+        stats = mapper.train(n)
+        done += n
+    stats["iterations_total"] = done
+    corrections = link.refine(mapper) if refine and not (stop is not None and stop()) else {}
+    return stats, corrections
+
+
 class SlamRunner:
     """Runs front end + mapper over a source and writes the output contract to ``out_dir``."""
 
@@ -166,22 +375,20 @@ class SlamRunner:
         self._gt_poses: dict[int, np.ndarray] = {}
         self._kf_stamps: list[int] = []
         self._mapper_err: Optional[BaseException] = None
-        self._pending_refined: dict[int, np.ndarray] = {}
+        self._pending_corrections: list[dict[int, np.ndarray]] = []
         self._lock = threading.Lock()
         self._queue: "queue.Queue[Optional[tuple[str, object]]]" = queue.Queue()
-        self._sent_kf_poses: dict[int, np.ndarray] = {}   # front-end keyframe poses given to the mapper
+        self.fe_link = FrontendPoseLink(self.cfg)     # pose exchange, as between the nodes
+        self.map_link = MapperPoseLink()
 
     # --------------------------------------------------------------------------- mapping side
 
     def _map_keyframe(self, kf: Keyframe) -> None:
-        self.mapper.add_keyframe(kf)
-        self.mapper.train()
-        if self.frontend is not None:
-            refined = self.mapper.refine_poses()
-            if refined:
-                with self._lock:
-                    self._pending_refined.update(refined)
-        n = len(self._kf_stamps)
+        _, corrections = map_keyframe(self.mapper, self.map_link, kf, refine=self.frontend is not None)
+        if corrections:
+            with self._lock:
+                self._pending_corrections.append(corrections)
+        n = len(self.mapper.keyframe_poses())
         if self.cfg.checkpoint_every and n % self.cfg.checkpoint_every == 0:
             self.mapper.save_checkpoint(self.out.out_dir / CHECKPOINT_FILE)
 
@@ -189,7 +396,7 @@ class SlamRunner:
         if kind == "kf":
             self._map_keyframe(item)
         else:  # "poses": front-end BA moved keyframes the mapper already holds
-            self.mapper.set_keyframe_poses(item)
+            self.map_link.apply_frontend_poses(self.mapper, item)
 
     def _mapper_loop(self) -> None:
         try:
@@ -205,7 +412,7 @@ class SlamRunner:
     def _submit(self, kf: Keyframe, worker: Optional[threading.Thread]) -> None:
         self._kf_stamps.append(kf.stamp_ns)
         self._kf_images[kf.stamp_ns] = (kf.image.numpy() * 255).round().astype(np.uint8)
-        self._sent_kf_poses[kf.stamp_ns] = kf.T_wc.numpy().copy()
+        self.fe_link.keyframe_sent(kf)
         self._dispatch("kf", kf, worker)
 
     def _dispatch(self, kind: str, item: object, worker: Optional[threading.Thread]) -> None:
@@ -214,27 +421,23 @@ class SlamRunner:
         else:
             self._queue.put((kind, item))
 
-    def _sync_poses(self, worker: Optional[threading.Thread]) -> None:
-        """Refined keyframe poses -> front end; front-end BA updates of mapped keyframes -> mapper."""
+    def _take_corrections(self) -> None:
+        """Mapper refinements -> front end (through the write-back policy), before a frame."""
         if self.frontend is None:
             return
         with self._lock:
-            refined, self._pending_refined = self._pending_refined, {}
-        if refined:
-            self.frontend.set_poses(refined)
-            self._sent_kf_poses.update({int(s): np.asarray(T) for s, T in refined.items()})
-        moved = {}
-        for s, T in zip(*self._frontend_kf_poses()):
-            old = self._sent_kf_poses.get(s)
-            if old is not None and np.abs(old - T).max() > 1e-7:
-                moved[s] = T
-        if moved:
-            self._sent_kf_poses.update(moved)
-            self._dispatch("poses", moved, worker)
+            pending, self._pending_corrections = self._pending_corrections, []
+        for corr in pending:
+            self.fe_link.apply_corrections(self.frontend, corr)
 
-    def _frontend_kf_poses(self) -> tuple[list[int], np.ndarray]:
-        traj = self.frontend.keyframe_trajectory()
-        return traj.stamps_ns.tolist(), traj.poses
+    def _send_moves(self, worker: Optional[threading.Thread]) -> None:
+        """Front-end keyframe poses that changed since last exchanged -> mapper, after a frame
+        and before its new keyframes (so the mapper refines from the front end's latest poses)."""
+        if self.frontend is None:
+            return
+        moved = self.fe_link.outgoing(self.frontend)
+        if moved:
+            self._dispatch("poses", moved, worker)
 
     # --------------------------------------------------------------------------------- run
 
@@ -257,7 +460,7 @@ class SlamRunner:
                 n_frames += 1
                 if self._mapper_err is not None:
                     raise VingsError(f"mapper failed: {self._mapper_err}")
-                self._sync_poses(worker)
+                self._take_corrections()
                 if self.gt_kf is not None:
                     T, kf = self.gt_kf.process(frame)
                     self._gt_poses[frame.stamp_ns] = T
@@ -269,6 +472,7 @@ class SlamRunner:
                     state = ests[-1].state if ests else self.frontend.state
                 if frame.stamp_ns in keep_novel:
                     self._frame_images[frame.stamp_ns] = frame.rgb().copy()
+                self._send_moves(worker)
                 for kf in kfs:
                     self._submit(kf, worker)
                 bar.update(1)
@@ -277,9 +481,11 @@ class SlamRunner:
                     self.on_frame({"stamp_ns": frame.stamp_ns, "state": state,
                                    "keyframes": len(self._kf_stamps)})
             if self.frontend is not None:
-                for kf in self.frontend.finish():
+                self._take_corrections()
+                kfs = self.frontend.finish()
+                self._send_moves(worker)
+                for kf in kfs:
                     self._submit(kf, worker)
-                self._sync_poses(worker)
         finally:
             if worker is not None:
                 self._queue.put(None)
@@ -287,7 +493,8 @@ class SlamRunner:
             bar.close()
         if self._mapper_err is not None:
             raise VingsError(f"mapper failed: {self._mapper_err}")
-        self._sync_poses(None)
+        self._take_corrections()
+        self._send_moves(None)
         wall = time.perf_counter() - t0
         return self._finish(n_frames, wall)
 
@@ -314,6 +521,10 @@ class SlamRunner:
         self.mapper.save_ply(self.out.map_path)
         self.mapper.save_checkpoint(self.out.out_dir / CHECKPOINT_FILE)
         m = metrics_template()
+        if self.frontend is not None:
+            st = self.fe_link.stats
+            log.info("pose write-back (%s): %d mapper corrections, %d applied, %d rejected",
+                     self.cfg.pose_writeback, st["corrections"], st["applied"], st["rejected"])
         m.update(frames=n_frames, frames_tracked=len(traj), keyframes=len(kf_traj), wall_s=wall,
                  fps=n_frames / wall if wall > 0 else None, num_gaussians=int(self.mapper.num_gaussians))
         gt = self.source.gt_camera_trajectory()

@@ -29,14 +29,15 @@ from vings_core.errors import InputError
 from vings_core.frontend import Frontend, FrontendConfig
 from vings_core.io.calib_yaml import load_calibration_yaml
 from vings_core.io.undistort import Undistorter
-from vings_core.types import CameraModel, Frame
+from vings_core.pipeline import FrontendPoseLink, RunConfig
+from vings_core.types import CameraModel, Frame, Trajectory
 
 from .node_common import (InputQueue, NodeConfig, RateMeter, Worker, node_sections, rss_mb,
                           run_node, section_config)
 
 #: front-end keyframe poses after later window BA moved them (nav_msgs/Path, each pose stamped with
-#: its keyframe stamp); the mapper applies them so both stages hold the same keyframe poses.
-FRONTEND_KEYFRAMES_TOPIC = "/vings/frontend/keyframes"
+#: its keyframe stamp); the mapper applies them as increments (vings_core.pipeline.MapperPoseLink).
+FRONTEND_KEYFRAMES_TOPIC = T.FRONTEND_KEYFRAMES_TOPIC
 
 
 class FrontendNode(Node):
@@ -45,20 +46,25 @@ class FrontendNode(Node):
         secs = node_sections(self)
         self.ncfg: NodeConfig = section_config(NodeConfig, secs["ros"], "frontend_node: ros")
         self.fcfg: FrontendConfig = section_config(FrontendConfig, secs["frontend"], "frontend_node: frontend")
+        # the pose write-back policy is the one `vings run` uses (section run)
+        self.rcfg: RunConfig = section_config(RunConfig, secs["run"], "frontend_node: run")
         self.error: Optional[BaseException] = None
         self.raw_camera: Optional[CameraModel] = None
         self.undist: Optional[Undistorter] = None
         self.frontend: Optional[Frontend] = None
         self.decoder = FrameDecoder(T.IMAGE_TOPIC)
-        self.queue: InputQueue = InputQueue(self.ncfg.queue_policy, self.ncfg.queue_size)
-        self._refined: dict[int, np.ndarray] = {}
+        # keep_newest: depth 1, a new image replaces the waiting one (dropped and counted)
+        self.queue: InputQueue = InputQueue(self.ncfg.queue_policy, 1 if self.ncfg.queue_policy ==
+                                            "keep_newest" else self.ncfg.queue_size)
+        self._corrections: list[dict[int, np.ndarray]] = []
+        self._camera_ready = threading.Event()
+        self.link = FrontendPoseLink(self.rcfg)
         self._lock = threading.Lock()
         self.rate = RateMeter()
         self.imu_count = 0
         self.frames_without_camera = 0
         self.bad_frames = 0
         self.last_state = "waiting"
-        self._sent_kf: dict[int, np.ndarray] = {}
         if self.ncfg.calib_file:
             calib = load_calibration_yaml(self.ncfg.calib_file)
             if calib.camera is None:
@@ -70,10 +76,11 @@ class FrontendNode(Node):
         self.create_subscription(CameraInfo, T.CAMERA_INFO_TOPIC, self._on_camera_info,
                                  sq(T.CAMERA_INFO_DEPTH))
         self.create_subscription(Imu, T.IMU_TOPIC, self._on_imu, sq(T.IMU_DEPTH))
-        self.create_subscription(Path, T.REFINED_KEYFRAMES_TOPIC, self._on_refined, T.latched_qos(1))
+        self.create_subscription(Path, T.KEYFRAME_CORRECTIONS_TOPIC, self._on_corrections,
+                                 sq(T.POSE_EXCHANGE_DEPTH))
         self.pub_odom = self.create_publisher(Odometry, T.ODOMETRY_TOPIC, sq(T.OUTPUT_DEPTH * 10))
         self.pub_path = self.create_publisher(Path, T.PATH_TOPIC, T.latched_qos(1))
-        self.pub_kf_path = self.create_publisher(Path, FRONTEND_KEYFRAMES_TOPIC, T.latched_qos(1))
+        self.pub_kf_path = self.create_publisher(Path, FRONTEND_KEYFRAMES_TOPIC, sq(T.POSE_EXCHANGE_DEPTH))
         self.pub_kf = {p: self.create_publisher(type_, PART_TOPICS[p], sq(T.OUTPUT_DEPTH * 4))
                        for p, type_ in (("image", Image), ("depth", Image), ("inv_depth_var", Image),
                                         ("pose", PoseStamped), ("camera_info", CameraInfo))}
@@ -103,10 +110,14 @@ class FrontendNode(Node):
         # The IMU is fused in a later stage of the front end; samples are counted for diagnostics.
         self.imu_count += 1
 
-    def _on_refined(self, msg: Path) -> None:
-        traj = path_to_trajectory(msg, T.REFINED_KEYFRAMES_TOPIC)
+    def _on_corrections(self, msg: Path) -> None:
+        try:
+            traj = path_to_trajectory(msg, T.KEYFRAME_CORRECTIONS_TOPIC)
+        except InputError as e:
+            self.get_logger().warning(f"ignored a malformed correction message: {e}")
+            return
         with self._lock:
-            self._refined.update({int(s): P for s, P in zip(traj.stamps_ns, traj.poses)})
+            self._corrections.append({int(s): P for s, P in zip(traj.stamps_ns, traj.poses)})
 
     def _set_camera(self, raw: CameraModel) -> None:
         w = self.ncfg.width or None
@@ -115,6 +126,7 @@ class FrontendNode(Node):
         self.raw_camera = raw
         self.frontend = Frontend(self.fcfg, self.undist.camera)
         cam = self.undist.camera
+        self._camera_ready.set()
         self.get_logger().info(f"camera {raw.width}x{raw.height} -> working {cam.width}x{cam.height}")
 
     # ----------------------------------------------------------------------------- the worker
@@ -124,6 +136,10 @@ class FrontendNode(Node):
         if msg is None:
             return
         stamp = header_ns(msg.header, f"{T.IMAGE_TOPIC}.header")
+        if self.frontend is None:
+            # the image and its camera_info travel on two topics: the first image may overtake
+            # its calibration, so wait for it briefly instead of dropping the image
+            self._camera_ready.wait(self.ncfg.calib_wait_s)
         if self.frontend is None:
             self.frames_without_camera += 1
             if self.frames_without_camera in (1, 20) or self.frames_without_camera % 200 == 0:
@@ -139,20 +155,17 @@ class FrontendNode(Node):
             self._ack(msg.header)
             return
         frame = Frame(stamp, self.undist(frame.image), self.undist.camera)
-        with self._lock:
-            refined, self._refined = self._refined, {}
-        known = {s: P for s, P in refined.items() if s in self._sent_kf}
-        if known:
-            self.frontend.set_poses(known)
-            self._sent_kf.update(known)
+        self._take_corrections()
         ests = self.frontend.process(frame)
         for est in ests:
             if est.state == "tracking":
                 self.pub_odom.publish(estimate_to_odometry(est, self.ncfg.world_frame,
                                                            self.ncfg.camera_frame, T.ODOMETRY_TOPIC))
         self.last_state = ests[-1].state if ests else self.frontend.state
-        self._publish_keyframes(self.frontend.pop_keyframes())
+        # as in `vings run`: moved keyframe poses first, then the new keyframes
+        kfs = self.frontend.pop_keyframes()
         self._publish_moved_keyframes()
+        self._publish_keyframes(kfs)
         self.rate.tick()
         now = time.monotonic()
         if now - self._last_path_pub > 1.0:
@@ -163,24 +176,27 @@ class FrontendNode(Node):
     def _ack(self, header: Header) -> None:
         self.pub_ack.publish(header)
 
+    def _take_corrections(self) -> None:
+        """The mapper's refinements received since the last frame -> write-back policy."""
+        with self._lock:
+            pending, self._corrections = self._corrections, []
+        for corr in pending:
+            self.link.apply_corrections(self.frontend, corr)
+
     def _publish_keyframes(self, kfs) -> None:
         for kf in kfs:
             msgs = keyframe_to_msgs(kf, self.ncfg.camera_frame, self.ncfg.world_frame)
             for part, m in msgs.as_dict().items():
                 self.pub_kf[part].publish(m)
-            self._sent_kf[int(kf.stamp_ns)] = kf.T_wc.numpy().copy()
+            self.link.keyframe_sent(kf)
 
     def _publish_moved_keyframes(self) -> None:
-        """Keyframes already sent whose pose the window BA changed since: one Path of them."""
-        traj = self.frontend.keyframe_trajectory()
-        moved = [(s, P) for s, P in zip(traj.stamps_ns.tolist(), traj.poses)
-                 if s in self._sent_kf and np.abs(self._sent_kf[s] - P).max() > 1e-7]
+        """Keyframes already sent whose pose changed since last exchanged: one Path of them."""
+        moved = self.link.outgoing(self.frontend)
         if not moved:
             return
-        from vings_core.types import Trajectory
-        for s, P in moved:
-            self._sent_kf[s] = P
-        t = Trajectory(np.array([s for s, _ in moved], np.int64), np.stack([P for _, P in moved]))
+        st = sorted(moved)
+        t = Trajectory(np.array(st, np.int64), np.stack([moved[s] for s in st]))
         self.pub_kf_path.publish(trajectory_to_path(t, self.ncfg.world_frame))
 
     def _publish_path(self) -> None:
@@ -190,7 +206,6 @@ class FrontendNode(Node):
         n = self.ncfg.path_max_poses
         if len(traj) > n:
             idx = np.linspace(0, len(traj) - 1, n).round().astype(int)
-            from vings_core.types import Trajectory
             traj = Trajectory(traj.stamps_ns[idx], traj.poses[idx])
         self.pub_path.publish(trajectory_to_path(traj, self.ncfg.world_frame))
 
@@ -202,7 +217,11 @@ class FrontendNode(Node):
                   "queue_length": len(self.queue), "queue_policy": self.queue.policy,
                   "frames_dropped": self.queue.dropped, "frames_received": self.queue.received,
                   "bad_frames": self.bad_frames,
-                  "imu_samples": self.imu_count, "rss_mb": rss_mb()}
+                  "imu_samples": self.imu_count, "rss_mb": rss_mb(),
+                  "writeback_policy": self.rcfg.pose_writeback,
+                  "corrections_received": self.link.stats["corrections"],
+                  "corrections_applied": self.link.stats["applied"],
+                  "corrections_rejected": self.link.stats["rejected"]}
         stamp = self.get_clock().now().nanoseconds
         self.pub_diag.publish(diagnostic_array(stamp, [tracking_status(
             "vings/frontend", st.get("state", "waiting"), values, st.get("reason"))]))
@@ -212,10 +231,15 @@ class FrontendNode(Node):
     def shutdown(self) -> None:
         """Stop the worker and flush the keyframes still in the window to the mapper."""
         self.queue.close()
-        self.worker.stop()
+        if not self.worker.stop(timeout=60.0):
+            self.get_logger().error("front-end worker did not stop within 60 s")
+            self.error = self.error or RuntimeError("front-end worker did not stop")
+            return
         if self.frontend is not None and self.error is None:
-            self._publish_keyframes(self.frontend.finish())
+            self._take_corrections()
+            kfs = self.frontend.finish()
             self._publish_moved_keyframes()
+            self._publish_keyframes(kfs)
             self._publish_path()
             time.sleep(0.2)  # let reliable writers hand the last packets over
 

@@ -1,12 +1,15 @@
 """``mapper_node``: keyframe packets in; renders, map points, refined keyframe poses, markers out.
 
 It assembles the five keyframe parts by stamp (``msg_adapters.keyframe.KeyframeAssembler``) and
-calls :class:`vings_core.mapping.Mapper`, the class ``vings run`` uses. It checkpoints the map
-periodically and on shutdown, and resumes from the checkpoint at start (``ros.checkpoint_path``,
-``ros.resume``) in the same world frame. Topics and parameters: docs/ros.md.
+runs :func:`vings_core.pipeline.map_keyframe` on :class:`vings_core.mapping.Mapper`, the step
+``vings run`` uses, with the same pose exchange (:class:`vings_core.pipeline.MapperPoseLink`). It
+checkpoints the map after its first keyframe, every N keyframes, every T seconds while the map
+changes, and on shutdown, atomically, and resumes from the checkpoint at start
+(``ros.checkpoint_path``, ``ros.resume``) in the same world frame. Topics and parameters: docs/ros.md.
 """
 from __future__ import annotations
 
+import os
 import threading
 import time
 from pathlib import Path as FsPath
@@ -28,11 +31,31 @@ from msg_adapters.markers import keyframe_frustums_marker, marker_array, traject
 from msg_adapters.pointcloud import points_to_pointcloud2
 from msg_adapters.pose import path_to_trajectory, trajectory_to_path
 from vings_core.mapping import Mapper, MapperConfig
+from vings_core.pipeline import MapperPoseLink, map_keyframe
 from vings_core.types import Keyframe, Trajectory
-
-from .frontend_node import FRONTEND_KEYFRAMES_TOPIC
 from .node_common import (InputQueue, NodeConfig, RateMeter, Worker, node_sections, rss_mb,
                           run_node, section_config)
+
+#: training iterations between two checks for shutdown / a due checkpoint
+TRAIN_CHUNK = 5
+
+
+def lower_priority(nice: int, threads: int) -> None:
+    """Make the mapper yield the CPU to tracking: add ``nice`` to this process's niceness and use
+    ``threads`` torch / numba threads (0 = leave)."""
+    if nice > 0:
+        try:
+            os.nice(nice)
+        except OSError:
+            pass
+    if threads > 0:
+        import torch
+        torch.set_num_threads(threads)
+        try:
+            import numba
+            numba.set_num_threads(min(threads, numba.config.NUMBA_NUM_THREADS))
+        except Exception:  # noqa: BLE001 - numba absent or threading layer fixed
+            pass
 
 
 class MapperNode(Node):
@@ -43,16 +66,22 @@ class MapperNode(Node):
         self.mcfg: MapperConfig = section_config(MapperConfig, secs["mapping"], "mapper_node: mapping")
         self.error: Optional[BaseException] = None
         self.ckpt = FsPath(self.ncfg.checkpoint_path) if self.ncfg.checkpoint_path else None
+        lower_priority(self.ncfg.mapper_nice, self.ncfg.mapper_threads)
+        self.link = MapperPoseLink()
         self.mapper = self._load_or_new()
         self.assembler = KeyframeAssembler(max_pending=16)
         # keyframes are never dropped: the queue is FIFO whatever the input policy
         self.queue: InputQueue = InputQueue("backpressure", 10 ** 6)
-        self._moved: dict[int, np.ndarray] = {}
+        self._moved: list[dict[int, np.ndarray]] = []
         self._lock = threading.Lock()
+        self._abort = threading.Event()     # shutdown: stop training early
+        self._busy = False
         self.rate = RateMeter(30.0)
         self.last_train: dict = {}
         self._last_points = 0.0
         self._last_ckpt = time.monotonic()
+        self._dirty = False                 # map changed since the last checkpoint
+        self.checkpoints = 0
         self.keyframes_mapped = 0
 
         sq = T.sensor_qos
@@ -60,12 +89,13 @@ class MapperNode(Node):
                             ("pose", PoseStamped), ("camera_info", CameraInfo)):
             self.create_subscription(type_, PART_TOPICS[part],
                                      lambda m, p=part: self._on_part(p, m), sq(T.OUTPUT_DEPTH * 4))
-        self.create_subscription(Path, FRONTEND_KEYFRAMES_TOPIC, self._on_moved, T.latched_qos(1))
+        self.create_subscription(Path, T.FRONTEND_KEYFRAMES_TOPIC, self._on_moved, sq(T.POSE_EXCHANGE_DEPTH))
         self.pub_color = self.create_publisher(Image, T.RENDER_COLOR_TOPIC, sq(T.OUTPUT_DEPTH))
         self.pub_depth = self.create_publisher(Image, T.RENDER_DEPTH_TOPIC, sq(T.OUTPUT_DEPTH))
         self.pub_normal = self.create_publisher(Image, T.RENDER_NORMAL_TOPIC, sq(T.OUTPUT_DEPTH))
         self.pub_points = self.create_publisher(PointCloud2, T.MAP_POINTS_TOPIC, T.latched_qos(1))
         self.pub_refined = self.create_publisher(Path, T.REFINED_KEYFRAMES_TOPIC, T.latched_qos(1))
+        self.pub_corr = self.create_publisher(Path, T.KEYFRAME_CORRECTIONS_TOPIC, sq(T.POSE_EXCHANGE_DEPTH))
         self.pub_markers = self.create_publisher(MarkerArray, T.MARKERS_TOPIC, T.latched_qos(1))
         self.pub_diag = self.create_publisher(DiagnosticArray, T.DIAGNOSTICS_TOPIC, sq(10))
         self.create_timer(self.ncfg.diagnostics_period_s, self._publish_diagnostics)
@@ -77,6 +107,7 @@ class MapperNode(Node):
     def _load_or_new(self) -> Mapper:
         if self.ckpt is not None and self.ncfg.resume and self.ckpt.exists():
             m = Mapper.load_checkpoint(self.ckpt, self.mcfg)
+            self.link.resumed(m.keyframe_poses())
             self.get_logger().info(f"resumed from checkpoint {self.ckpt}: "
                                    f"{len(m.keyframe_poses())} keyframes, {m.num_gaussians} Gaussians")
             return m
@@ -94,33 +125,55 @@ class MapperNode(Node):
             self.queue.put(kf)
 
     def _on_moved(self, msg: Path) -> None:
-        traj = path_to_trajectory(msg, FRONTEND_KEYFRAMES_TOPIC)
+        try:
+            traj = path_to_trajectory(msg, T.FRONTEND_KEYFRAMES_TOPIC)
+        except Exception as e:  # noqa: BLE001 - a bad message is reported, the node keeps running
+            self.get_logger().warning(f"ignored a malformed keyframe-pose message: {e}")
+            return
         with self._lock:
-            self._moved.update({int(s): P for s, P in zip(traj.stamps_ns, traj.poses)})
+            self._moved.append({int(s): P for s, P in zip(traj.stamps_ns, traj.poses)})
 
     # ----------------------------------------------------------------------------- the worker
 
     def _apply_moved(self) -> None:
         with self._lock:
-            moved, self._moved = self._moved, {}
-        known = set(self.mapper.keyframe_poses())
-        moved = {s: P for s, P in moved.items() if s in known}
-        if moved:
-            self.mapper.set_keyframe_poses(moved)
+            pending, self._moved = self._moved, []
+        for moved in pending:
+            if self.link.apply_frontend_poses(self.mapper, moved):
+                self._dirty = True
 
     def _step(self) -> None:
         kf: Optional[Keyframe] = self.queue.get(timeout=0.1)
         self._apply_moved()
         if kf is None:
+            self._maybe_checkpoint(idle=True)
             return
         if int(kf.stamp_ns) in self.mapper.keyframe_poses():
             return  # resumed graph: the front end re-sent a keyframe the checkpoint already holds
-        self.mapper.add_keyframe(kf)
-        self.last_train = self.mapper.train()
-        self.mapper.refine_poses()
+        self._busy = True
+        try:
+            self._map(kf)
+        finally:
+            self._busy = False
+
+    def _map(self, kf: Keyframe) -> None:
+        def stop() -> bool:
+            # between training chunks: front-end updates, a due periodic checkpoint, shutdown
+            self._apply_moved()
+            self._maybe_checkpoint(idle=False)
+            return self._abort.is_set()
+
+        self.last_train, corrections = map_keyframe(self.mapper, self.link, kf, refine=True,
+                                                    chunk=TRAIN_CHUNK, stop=stop)
+        self._dirty = True
         self.keyframes_mapped += 1
         self.rate.tick()
         stamp = int(kf.stamp_ns)
+        if corrections:
+            st = sorted(corrections)
+            self.pub_corr.publish(trajectory_to_path(
+                Trajectory(np.array(st, np.int64), np.stack([corrections[s] for s in st])),
+                self.ncfg.world_frame))
         self._publish_refined(stamp)
         if self.ncfg.render_every_keyframes and self.keyframes_mapped % self.ncfg.render_every_keyframes == 0:
             self._publish_render(stamp, kf)
@@ -129,10 +182,32 @@ class MapperNode(Node):
         if now - self._last_points >= self.ncfg.points_period_s:
             self._publish_points(stamp)
             self._last_points = now
-        if self.ckpt is not None and self.ncfg.checkpoint_period_s > 0 and \
-                now - self._last_ckpt >= self.ncfg.checkpoint_period_s:
-            self.mapper.save_checkpoint(self.ckpt)
-            self._last_ckpt = now
+        n = self.ncfg.checkpoint_every_keyframes
+        if self.keyframes_mapped == 1 or (n and self.keyframes_mapped % n == 0):
+            self._save_checkpoint(f"keyframe {self.keyframes_mapped}")
+        else:
+            self._maybe_checkpoint(idle=False)
+
+    def _maybe_checkpoint(self, idle: bool) -> None:
+        """Periodic checkpoint (``checkpoint_period_s``) when the map changed since the last."""
+        p = self.ncfg.checkpoint_period_s
+        if self.ckpt is None or p <= 0 or not self._dirty or not self.mapper.keyframe_poses():
+            return
+        if time.monotonic() - self._last_ckpt >= p:
+            self._save_checkpoint("periodic" + (" (idle)" if idle else ""))
+
+    def _save_checkpoint(self, why: str) -> None:
+        """Write the checkpoint (atomic: a crash leaves the previous one intact). Worker thread
+        only, or after the worker has stopped."""
+        if self.ckpt is None:
+            return
+        t0 = time.perf_counter()
+        self.mapper.save_checkpoint(self.ckpt)
+        self._last_ckpt = time.monotonic()
+        self._dirty = False
+        self.checkpoints += 1
+        self.get_logger().info(f"checkpoint ({why}): {len(self.mapper.keyframe_poses())} keyframes, "
+                               f"{self.mapper.num_gaussians} Gaussians, {time.perf_counter() - t0:.2f} s")
 
     def _kf_traj(self) -> Trajectory:
         poses = self.mapper.keyframe_poses()
@@ -176,7 +251,8 @@ class MapperNode(Node):
                   "gaussians_total": self.mapper.num_gaussians, "gaussians_active": self.mapper.num_active,
                   "gaussians_passive": self.mapper.num_passive, "queue_length": len(self.queue),
                   "keyframe_rate_hz": self.rate.hz, "incomplete_packets": self.assembler.pending,
-                  "dropped_packets": self.assembler.dropped, "rss_mb": rss_mb()}
+                  "dropped_packets": self.assembler.dropped, "checkpoints": self.checkpoints,
+                  "rss_mb": rss_mb()}
         level = "ok" if self.error is None else "error"
         msg = "mapping" if self.error is None else f"failed: {self.error}"
         self.pub_diag.publish(diagnostic_array(self.get_clock().now().nanoseconds,
@@ -185,15 +261,25 @@ class MapperNode(Node):
     # -------------------------------------------------------------------------------- shutdown
 
     def shutdown(self) -> None:
-        """Finish the keyframes already received, then write the final checkpoint."""
-        deadline = time.monotonic() + 120.0
-        while len(self.queue) and self.error is None and time.monotonic() < deadline:
-            time.sleep(0.1)
+        """Finish the keyframes already received (up to ``shutdown_timeout_s``), stop the worker,
+        then write the final checkpoint: only once the worker has ended, so the checkpoint never
+        races with training."""
+        deadline = time.monotonic() + self.ncfg.shutdown_timeout_s
+        while (len(self.queue) or self._busy) and self.error is None and \
+                self.worker.thread.is_alive() and time.monotonic() < deadline:
+            time.sleep(0.05)
+        if len(self.queue) or self._busy:
+            self.get_logger().warning(f"shutdown: {len(self.queue)} queued keyframes not mapped "
+                                      f"after {self.ncfg.shutdown_timeout_s:.0f} s")
+        self._abort.set()
         self.queue.close()
-        self.worker.stop()
+        if not self.worker.stop(timeout=120.0):
+            self.get_logger().error("mapper worker did not stop within 120 s; no final checkpoint")
+            self.error = self.error or RuntimeError("mapper worker did not stop")
+            return
+        self._apply_moved()
         if self.ckpt is not None and self.error is None and self.mapper.keyframe_poses():
-            self.mapper.save_checkpoint(self.ckpt)
-            self.get_logger().info(f"checkpoint written: {self.ckpt}")
+            self._save_checkpoint("shutdown")
         self.mapper.close()
 
 

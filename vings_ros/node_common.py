@@ -11,6 +11,7 @@ from __future__ import annotations
 import collections
 import dataclasses
 import logging
+import os
 import signal
 import sys
 import threading
@@ -36,8 +37,14 @@ class NodeConfig:
     dropped; the queue holds up to ``queue_size`` items and the replay waits for acknowledgements).
     ``calib_file``: calibration YAML used instead of the camera_info topic. ``width``/``height``:
     working resolution the front end resizes/undistorts to (0 = as published).
-    ``checkpoint_path``: mapper checkpoint ("" = none); ``resume``: load it at start if it exists;
-    ``checkpoint_period_s``: seconds between periodic checkpoints (0 = only on shutdown).
+    ``calib_wait_s``: how long the front end holds an image that arrived before any calibration.
+    ``checkpoint_path``: mapper checkpoint ("" = none); ``resume``: load it at start if it exists.
+    The mapper writes it (atomically) after its first keyframe, every ``checkpoint_every_keyframes``
+    keyframes, whenever ``checkpoint_period_s`` seconds passed since the last one and the map
+    changed (also while it trains a keyframe), and on shutdown (0 switches a trigger off).
+    ``shutdown_timeout_s``: how long the mapper may work through queued keyframes after SIGINT.
+    ``mapper_nice``: niceness the mapper process adds to itself, so tracking wins the CPU (0 = off);
+    ``mapper_threads``: torch / numba threads of the mapper (0 = library default).
     ``points_period_s``: throttle of /vings/map/points. ``diagnostics_period_s``: /diagnostics rate.
     """
 
@@ -46,12 +53,17 @@ class NodeConfig:
     queue_policy: str = "keep_newest"
     queue_size: int = 64
     calib_file: str = ""
+    calib_wait_s: float = 2.0
     width: int = 0
     height: int = 0
     path_max_poses: int = 10000
     checkpoint_path: str = ""
     resume: bool = True
     checkpoint_period_s: float = 30.0
+    checkpoint_every_keyframes: int = 5
+    shutdown_timeout_s: float = 120.0
+    mapper_nice: int = 10
+    mapper_threads: int = 0
     points_period_s: float = 2.0
     max_points: int = 200000
     diagnostics_period_s: float = 1.0
@@ -64,6 +76,14 @@ class NodeConfig:
             raise ValueError("queue_size must be >= 1")
         if self.width < 0 or self.height < 0:
             raise ValueError("width/height must be >= 0")
+        if self.checkpoint_period_s < 0 or self.checkpoint_every_keyframes < 0:
+            raise ValueError("checkpoint_period_s and checkpoint_every_keyframes must be >= 0")
+        if not 0 <= self.mapper_nice <= 19:
+            raise ValueError(f"mapper_nice must be in 0..19, got {self.mapper_nice}")
+        if self.mapper_threads < 0:
+            raise ValueError("mapper_threads must be >= 0")
+        if self.calib_wait_s < 0 or self.shutdown_timeout_s < 0:
+            raise ValueError("calib_wait_s and shutdown_timeout_s must be >= 0")
 
 
 KNOWN_SECTIONS = ("ros", "frontend", "mapping", "run")
@@ -162,10 +182,20 @@ class Worker:
         except BaseException as e:  # noqa: BLE001 - reported to the node, which exits non-zero
             self._on_error(e)
 
-    def stop(self, timeout: float = 30.0) -> None:
+    @property
+    def stopping(self) -> bool:
+        return self._stop.is_set()
+
+    def stop(self, timeout: Optional[float] = None) -> bool:
+        """Let the current step finish, end the loop and wait for the thread (``None`` = as long
+        as it takes). Returns True when the thread has ended: only then may the caller touch
+        what the worker was using, and only then may the process exit cleanly (a thread still
+        inside torch at interpreter exit aborts the process: "terminate called without an
+        active exception")."""
         self._stop.set()
-        if self.thread.is_alive():
+        if self.thread.is_alive() and threading.current_thread() is not self.thread:
             self.thread.join(timeout)
+        return not self.thread.is_alive()
 
 
 class RateMeter:
@@ -219,6 +249,7 @@ def run_node(make_node: Callable[[], Any], args: Optional[list[str]] = None) -> 
     signal.signal(signal.SIGINT, _sig)
     signal.signal(signal.SIGTERM, _sig)
     node = None
+    ex = None
     code = 0
     try:
         node = make_node()
@@ -236,15 +267,28 @@ def run_node(make_node: Callable[[], Any], args: Optional[list[str]] = None) -> 
     except ExternalShutdownException:
         pass
     finally:
+        # order: the node's shutdown (stops its worker thread, final checkpoint), then the
+        # executor, the node, and rclpy
+        worker_alive = False
         if node is not None:
             try:
                 node.shutdown()
             except Exception as e:  # noqa: BLE001
                 print(f"{node.get_name()}: error during shutdown: {e}", file=sys.stderr)
                 code = code or 1
+            w = getattr(node, "worker", None)
+            worker_alive = w is not None and w.thread.is_alive()
+            if ex is not None:
+                ex.shutdown(timeout_sec=1.0)
             node.destroy_node()
         if rclpy.ok():
             rclpy.shutdown()
+        if worker_alive:
+            # a thread stuck in native code would abort the interpreter at exit; leave at once
+            print(f"{node.get_name()}: worker thread did not stop; exiting hard", file=sys.stderr)
+            sys.stdout.flush()
+            sys.stderr.flush()
+            os._exit(code or 1)
     return code
 
 

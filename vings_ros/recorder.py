@@ -18,7 +18,6 @@ from rclpy.node import Node
 
 from msg_adapters import topics as T
 
-from .frontend_node import FRONTEND_KEYFRAMES_TOPIC
 from .node_common import run_node
 
 #: (topic, ROS 2 type name, durability-latched?) of everything the graph publishes
@@ -30,12 +29,13 @@ OUTPUT_TOPICS = [
     (T.KEYFRAME_VAR_TOPIC, "sensor_msgs/msg/Image", False),
     (T.KEYFRAME_POSE_TOPIC, "geometry_msgs/msg/PoseStamped", False),
     (T.KEYFRAME_INFO_TOPIC, "sensor_msgs/msg/CameraInfo", False),
-    (FRONTEND_KEYFRAMES_TOPIC, "nav_msgs/msg/Path", True),
+    (T.FRONTEND_KEYFRAMES_TOPIC, "nav_msgs/msg/Path", False),
     (T.RENDER_COLOR_TOPIC, "sensor_msgs/msg/Image", False),
     (T.RENDER_DEPTH_TOPIC, "sensor_msgs/msg/Image", False),
     (T.RENDER_NORMAL_TOPIC, "sensor_msgs/msg/Image", False),
     (T.MAP_POINTS_TOPIC, "sensor_msgs/msg/PointCloud2", True),
     (T.REFINED_KEYFRAMES_TOPIC, "nav_msgs/msg/Path", True),
+    (T.KEYFRAME_CORRECTIONS_TOPIC, "nav_msgs/msg/Path", False),
     (T.MARKERS_TOPIC, "visualization_msgs/msg/MarkerArray", True),
     (T.DIAGNOSTICS_TOPIC, "diagnostic_msgs/msg/DiagnosticArray", False),
 ]
