@@ -8,10 +8,15 @@ Experiments (``--exp``, comma separated; default all):
 
 * ``room``: room, >= 200 frames at 376x240, GT poses + depth: PSNR/SSIM on keyframes and on novel
   (non-keyframe) views, Gaussian count, mapping time per keyframe.
-* ``score``: score-manager ablation (manager off, several ``sc_storage``): Gaussian count and PSNR.
+* ``frontend``: the full SLAM as ``vings run --sync`` (front end + mapper + pose exchange) on a
+  generated room (>= 200 frames): ATE, PSNR on keyframes and novel views from its metrics.json.
+* ``score``: score-manager ablation (manager off, several ``sc_storage``, and the paper's storage
+  rule on every Gaussian, ``*_all``): Gaussian count and PSNR.
 * ``pose``: pose-refinement ablation from GT + injected noise (2 cm, 1 deg on every keyframe but the
   first, which fixes the gauge): keyframe ATE with no refinement / rendered pose only / all visible
   keyframes (single-to-multi).
+* ``pose_frontend``: the same ablation starting from the front end's final keyframe poses and its
+  depth (ATE after Sim(3) alignment: the front end's world frame and scale are its own).
 * ``storage``: street --loop drive (>= 300 m), few iterations per keyframe: active set vs cap, total
   count, passive store spill, peak RSS, PSNR of the start region at first visit and after the loop.
 * ``timing``: mapping time per keyframe at 376x240 with 50 iterations, split in add/train.
@@ -111,15 +116,21 @@ def eval_views(m: Mapper, seq: SimSequence, idx) -> dict:
             "views": len(ps)}
 
 
-def run_mapping(seq: SimSequence, cfg: MapperConfig, kf_idx, poses: dict | None = None,
-                refine: bool = False, tag: str = "") -> tuple[Mapper, dict]:
-    """Map keyframes ``kf_idx``; ``poses`` optionally overrides the keyframe poses (noisy runs)."""
+def run_mapping(seq: SimSequence | None, cfg: MapperConfig, kf_idx, poses: dict | None = None,
+                refine: bool = False, tag: str = "", keyframes: list | None = None) -> tuple[Mapper, dict]:
+    """Map keyframes ``kf_idx`` of ``seq`` (``poses`` optionally overrides their poses: noisy runs),
+    or the given ``keyframes`` (front-end keyframes; ``seq`` and ``kf_idx`` unused)."""
     m = Mapper(cfg)
     add_t, train_t, refine_t = [], [], []
     t_start = time.perf_counter()
     cpu_start = time.process_time()
+    if keyframes is not None:
+        kf_idx = list(range(len(keyframes)))
     for n, i in enumerate(kf_idx):
-        kf = seq.keyframe(i, None if poses is None else poses[i])
+        if keyframes is not None:
+            kf = keyframes[i]
+        else:
+            kf = seq.keyframe(i, None if poses is None else poses[i])
         t0 = time.perf_counter()
         m.add_keyframe(kf)
         t1 = time.perf_counter()
@@ -136,6 +147,8 @@ def run_mapping(seq: SimSequence, cfg: MapperConfig, kf_idx, poses: dict | None 
                 f"psnr(train) {st['psnr']:.2f} add {t1 - t0:.2f}s train {t2 - t1:.2f}s refine {t3 - t2:.2f}s")
     stats = {"keyframes": len(kf_idx), "wall_s": time.perf_counter() - t_start,
              "cpu_s": time.process_time() - cpu_start,
+             "cpu_per_kf_s": (time.process_time() - cpu_start) / max(1, len(kf_idx)),
+             "load_avg_1m_end": os.getloadavg()[0],
              "time_per_kf_s": float(np.mean(np.array(add_t) + np.array(train_t))),
              "add_per_kf_s": float(np.mean(add_t)), "train_per_kf_s": float(np.mean(train_t)),
              "refine_per_kf_s": float(np.mean(refine_t)), "num_gaussians": m.num_gaussians,
@@ -174,6 +187,9 @@ def exp_score(a, cfg: MapperConfig, base: dict | None) -> dict:
     res = {}
     variants = [("off", replace(cfg, score_manager=False))]
     variants += [(f"{v:g}", replace(cfg, score_manager=True, sc_storage=v)) for v in a.sc_storage]
+    # the paper's storage rule on every Gaussian (not only those whose ID(g) is a window keyframe)
+    variants += [(f"{v:g}_all", replace(cfg, score_manager=True, sc_storage=v, prune_window_owned_only=False))
+                 for v in a.sc_storage_all]
     for name, c in variants:
         m, st = run_mapping(seq, c, kf, tag=f"score[{name}]")
         ek = eval_views(m, seq, kf)
@@ -255,6 +271,118 @@ def exp_pose(a, cfg: MapperConfig) -> dict:
             "multi_beats_none": res["multi"]["ate_rmse_m"] < res["none"]["ate_rmse_m"]}
 
 
+# ------------------------------------------------------------------ front-end poses and depth
+
+
+def _room_dir(a, frames: int):
+    """A synthetic room written by ``vings_core.sim.generate`` (the files ``vings sim`` writes), cached
+    in ``--workdir``."""
+    from pathlib import Path
+    from vings_core.sim import generate
+    out = Path(a.workdir) / f"room_{frames}_{a.width}x{a.height}"
+    if not (out / "sim.json").is_file():
+        if out.exists():
+            import shutil
+            shutil.rmtree(out)
+        log(f"generating {out}")
+        generate("room", out, frames=frames, width=a.width, height=a.height, mcap=False)
+    return out
+
+
+def _open(a, path):
+    from vings_core.io import SourceOptions, open_source
+    return open_source(path, SourceOptions(width=a.width, height=a.height))
+
+
+def exp_frontend(a, cfg: MapperConfig) -> dict:
+    """The full SLAM (``vings run --sync``: front end + mapper + pose exchange both ways) on a room
+    of >= 200 frames; figures from the runner's metrics.json (the mapper uses the benchmark config)."""
+    import tempfile
+    from vings_core.pipeline import RunConfig, SlamRunner
+    src_dir = _room_dir(a, a.frontend_frames)
+    out_dir = tempfile.mkdtemp(prefix="vings_bench_frontend_run_")
+    runner = SlamRunner(_open(a, src_dir), out_dir, params_file=a.params,
+                        run_cfg=RunConfig(sync=True, width=a.width, height=a.height), progress=False)
+    runner.mapper.close()
+    runner.mapper = Mapper(cfg)
+    t0 = time.perf_counter()
+    metrics = runner.run()
+    wall = time.perf_counter() - t0
+    tm = runner.mapper.timings
+    nk = max(1, metrics.get("keyframes") or 1)
+    res = {"source": str(src_dir), "out_dir": out_dir, "command_equivalent":
+           f"vings run {src_dir} --out OUT --sync", "iters_per_keyframe": cfg.iters_per_keyframe,
+           "refine_mode": cfg.refine_mode,
+           **{k: metrics.get(k) for k in ("frames", "frames_tracked", "keyframes", "ate_sim3_m", "ate_se3_m",
+                                           "sim3_scale", "psnr_keyframes_db", "ssim_keyframes", "psnr_novel_db",
+                                           "fps", "num_gaussians", "peak_rss_mb")},
+           "wall_s": wall, "map_add_per_kf_s": tm["add_s"] / nk, "map_train_per_kf_s": tm["train_s"] / nk,
+           "map_refine_per_kf_s": tm["refine_s"] / nk, "counters": dict(runner.mapper.counters)}
+    runner.mapper.close()
+    log("frontend:", json.dumps(res))
+    return res
+
+
+def _frontend_keyframes(a, frames: int) -> tuple[list, dict]:
+    """Run the front end alone over the first ``frames`` frames of the room; returns its keyframes
+    (its dense depth and inverse-depth variance) carrying the front end's final keyframe poses, and
+    the ground-truth ``T_wc`` per keyframe stamp."""
+    from vings_core.eval.traj import interpolate_poses
+    from vings_core.frontend import Frontend, FrontendConfig
+    from vings_core.config import load_section
+    src = _open(a, _room_dir(a, max(frames, a.frontend_frames)))
+    fe = Frontend(load_section(FrontendConfig, "frontend", a.params), src.calibration.camera)
+    kfs = []
+    for n, frame in enumerate(src.frames()):
+        if n >= frames:
+            break
+        fe.process(frame)
+        kfs.extend(fe.pop_keyframes())
+    kfs.extend(fe.finish())
+    traj = fe.keyframe_trajectory()
+    final = dict(zip(traj.stamps_ns.tolist(), traj.poses))
+    kfs = [replace(k, T_wc=torch.from_numpy(np.array(final.get(k.stamp_ns, k.T_wc.numpy())))) for k in kfs]
+    kfs.sort(key=lambda k: k.stamp_ns)
+    st = np.array([k.stamp_ns for k in kfs], np.int64)
+    gt = dict(zip(st.tolist(), interpolate_poses(src.gt_camera_trajectory(), st)))
+    log(f"front end: {frames} frames -> {len(kfs)} keyframes")
+    return kfs, gt
+
+
+def _errors_vs_gt(est: dict, gt: dict) -> dict:
+    """Keyframe pose errors after Sim(3) alignment (front-end world frame and scale differ from the
+    ground truth's)."""
+    from vings_core.eval.align import umeyama
+    st = sorted(gt)
+    E = np.stack([est[s] for s in st])
+    G = np.stack([gt[s] for s in st])
+    sc, R, t = umeyama(E[:, :3, 3], G[:, :3, 3], with_scale=True)
+    p = sc * E[:, :3, 3] @ R.T + t
+    e = np.linalg.norm(p - G[:, :3, 3], axis=1)
+    rot = [float(rotation_angle_deg((R @ E[k, :3, :3]).T @ G[k, :3, :3])) for k in range(len(st))]
+    return {"ate_sim3_m": float(np.sqrt((e ** 2).mean())), "ate_max_m": float(e.max()),
+            "rot_rmse_deg": float(np.sqrt(np.mean(np.square(rot)))), "sim3_scale": float(sc)}
+
+
+def exp_pose_frontend(a, cfg: MapperConfig) -> dict:
+    """Pose-refinement ablation starting from the front end's keyframe poses and depth."""
+    kfs, gt = _frontend_keyframes(a, a.pose_frames)
+    res = {"initial": _errors_vs_gt({k.stamp_ns: k.T_wc.numpy() for k in kfs}, gt)}
+    for mode in ("none", "single", "multi"):
+        c = replace(cfg, refine_mode=mode)
+        m, st = run_mapping(None, c, None, refine=mode != "none", tag=f"pose_fe[{mode}]",
+                            keyframes=[replace(k, T_wc=k.T_wc.clone()) for k in kfs])
+        r = _errors_vs_gt(m.keyframe_poses(), gt)
+        cam = kfs[0].camera
+        ps = [psnr(m.render(m.keyframe_poses()[k.stamp_ns], cam)["color"], k.image.numpy()) for k in kfs]
+        res[mode] = {**r, "psnr_keyframes_db": float(np.mean(ps)), "refine_per_kf_s": st["refine_per_kf_s"]}
+        log(f"pose_fe[{mode}]:", res[mode])
+        m.close()
+    return {"frames": a.pose_frames, "keyframes": len(kfs), "results": res,
+            "multi_beats_single": res["multi"]["ate_sim3_m"] < res["single"]["ate_sim3_m"],
+            "multi_beats_none": res["multi"]["ate_sim3_m"] < res["none"]["ate_sim3_m"]}
+
+
 def exp_storage(a, cfg: MapperConfig) -> dict:
     seq = SimSequence("street", None, a.width, a.height, loop=True, length_m=a.street_length, cache=False)
     n = seq.n if a.street_frames is None else min(seq.n, a.street_frames)
@@ -326,7 +454,7 @@ def exp_timing(a, cfg: MapperConfig, room: dict | None) -> dict:
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--exp", default="room,score,pose,storage,timing")
+    p.add_argument("--exp", default="room,frontend,score,pose,pose_frontend,storage,timing")
     p.add_argument("--quick", action="store_true", help="small sizes for development")
     p.add_argument("--params", default=None, help="ROS params YAML with a 'mapping' section")
     p.add_argument("--width", type=int, default=376)
@@ -335,8 +463,13 @@ def main(argv=None) -> int:
     p.add_argument("--max-novel", type=int, default=40)
     p.add_argument("--room-frames", type=int, default=200)
     p.add_argument("--score-frames", type=int, default=100)
-    p.add_argument("--sc-storage", default="0.5,2,8,32")
+    p.add_argument("--sc-storage", default="0.5,2,8")
+    p.add_argument("--sc-storage-all", default="2",
+                   help="sc_storage values also run with prune_window_owned_only=False (paper rule)")
     p.add_argument("--pose-frames", type=int, default=100)
+    p.add_argument("--frontend-frames", type=int, default=200)
+    p.add_argument("--workdir", default=os.path.join(os.environ.get("TMPDIR", "/tmp"), "vings_bench_mapping"),
+                   help="where generated synthetic sequences are cached")
     p.add_argument("--noise-trans", type=float, default=0.02)
     p.add_argument("--noise-rot", type=float, default=1.0)
     p.add_argument("--street-length", type=float, default=320.0)
@@ -351,10 +484,12 @@ def main(argv=None) -> int:
     p.add_argument("--threads", type=int, default=1, help="torch intra-op threads (numba uses its own)")
     a = p.parse_args(argv)
     a.sc_storage = [float(v) for v in a.sc_storage.split(",") if v]
+    a.sc_storage_all = [float(v) for v in a.sc_storage_all.split(",") if v]
     if a.quick:
         a.room_frames = min(a.room_frames, 40)
         a.score_frames = min(a.score_frames, 30)
         a.pose_frames = min(a.pose_frames, 30)
+        a.frontend_frames = min(a.frontend_frames, 60)
         a.street_frames = a.street_frames or 120
         a.max_novel = min(a.max_novel, 8)
     torch.set_num_threads(a.threads)
@@ -369,10 +504,14 @@ def main(argv=None) -> int:
         room, m, _ = exp_room(a, cfg)
         m.close()
         out["room"] = room
+    if "frontend" in exps:
+        out["frontend"] = exp_frontend(a, cfg)
     if "score" in exps:
         out["score"] = exp_score(a, cfg, room)
     if "pose" in exps:
         out["pose"] = exp_pose(a, cfg)
+    if "pose_frontend" in exps:
+        out["pose_frontend"] = exp_pose_frontend(a, cfg)
     if "storage" in exps:
         out["storage"] = exp_storage(a, cfg)
     if "timing" in exps:

@@ -12,10 +12,10 @@ from vings_core.errors import ConfigError, InputError
 from vings_core.geometry import np_pose, np_se3_exp, quat_to_rotmat, rotation_angle_deg
 from vings_core.mapping import GaussianMap, Mapper, MapperConfig, read_ply
 from vings_core.mapping import scores as S
-from vings_core.mapping.init import (depth_normals, frame_from_normals, gaussians_from_pixels, num_to_add,
-                                     sample_pixels, usable_depth_mask)
-from vings_core.mapping.losses import (accumulation_loss, depth_loss, normals_from_depth, ssim_map,
-                                       ssim_reference)
+from vings_core.mapping.init import (depth_normals, empty_mask, fill_depth, frame_from_normals,
+                                     gaussians_from_pixels, num_to_add, sample_pixels, usable_depth_mask)
+from vings_core.mapping.losses import (accumulation_loss, depth_loss, normals_from_depth, sep_blur, ssim_map,
+                                       ssim_map_fast, ssim_reference, ssim_target_stats)
 from vings_core.mapping.optim import reference_adam_rows, sparse_adam_step, sparse_adam_step_fast
 from vings_core.mapping.ply import ply_property_names
 from vings_core.mapping.storage import PassiveStore, active_split, owner_distances
@@ -99,6 +99,9 @@ def test_status_and_storage_transitions():
     # unstable, judged, seen but contributing little (#4); unseen #0 is frozen instead, the newborn #5
     # and stable ones are kept
     assert prune.tolist() == [False, False, False, False, True, False]
+    # a Gaussian whose best view (ID(g)) has left the window is not judged by the window's sum
+    owned = torch.tensor([True, True, True, True, False, True])
+    assert not S.storage_control(stable, s_c, judged, 0.5, 1e-4, owned).any()
     wc, we, since = s_c[:, None].repeat(1, 2), s_e[:, None].repeat(1, 2), torch.zeros(6, dtype=torch.int64)
     S.reset_scores(wc, we, since, to_unstable, 123)
     assert (wc[2] == 0).all() and (we[2] == 0).all() and since[2] == 123 and since[0] == 0 and wc[1, 0] == 5.0
@@ -223,6 +226,47 @@ def test_usable_mask_and_number_to_add():
     assert num_to_add(low, 1000) == 500
 
 
+def test_empty_mask_separates_sky_from_uncertain_depth():
+    """Only pixels known to be empty get the accumulation loss: no surface with a certain inverse
+    depth (ground-truth sky) or depth beyond max_depth; front-end pixels dropped for uncertainty are
+    unknown (their surface may be mapped from other keyframes)."""
+    cam = _cam(8, 4)
+    d = torch.full((4, 8), 2.0)
+    var = torch.zeros_like(d)
+    d[0, 0] = 0                      # ground-truth sky: no surface, variance 0
+    d[0, 1] = 0                      # front end: no depth, large inverse-depth variance (std 0.3 1/m)
+    var[0, 1] = 0.09
+    d[0, 2] = 0                      # no surface, inverse depth 0 +- 0.01 1/m: beyond 40 m at 1 sigma
+    var[0, 2] = 1e-4
+    kf = _kf(1, np.eye(4), d, cam, var=var)
+    kf.valid[0, 3] = False           # depth given but marked invalid, within range: unknown
+    d2 = d.clone()
+    d2[1, 0] = 100.0                 # excessive depth
+    kf2 = _kf(2, np.eye(4), d2, cam, var=var)
+    kf2.valid[1, 0] = False
+    e = empty_mask(kf, max_depth=40.0)
+    assert e[0, 0] and not e[0, 1] and e[0, 2] and not e[0, 3] and int(e.sum()) == 2
+    e2 = empty_mask(kf2, max_depth=40.0)
+    assert e2[1, 0] and int(e2.sum()) == 3
+
+
+def test_fill_depth_keeps_known_pixels_and_interpolates_holes():
+    H, W = 40, 64
+    v, u = torch.meshgrid(torch.arange(H, dtype=torch.float32), torch.arange(W, dtype=torch.float32), indexing="ij")
+    plane = 2.0 + 0.01 * u + 0.02 * v                    # a smooth slanted surface
+    known = torch.ones(H, W, dtype=torch.bool)
+    known[10:30, 20:44] = False                          # a textureless patch the front end dropped
+    known[0:3, 0:3] = False
+    d = torch.where(known, plane, torch.zeros(()))
+    f = fill_depth(d, known)
+    assert torch.equal(f[known], plane[known])
+    assert float((f[~known] - plane[~known]).abs().max()) < 0.15      # within 5 % of ~3 m
+    assert float(f[~known].min()) >= float(plane[known].min()) and float(f[~known].max()) <= float(plane.max())
+    c = fill_depth(torch.where(known, torch.full((H, W), 3.0), torch.zeros(())), known)
+    assert torch.allclose(c, torch.full((H, W), 3.0))
+    assert torch.equal(fill_depth(d, torch.zeros_like(known)), torch.zeros(H, W))
+
+
 # ----------------------------------------------------------------------------- losses
 
 
@@ -232,6 +276,32 @@ def test_ssim_separable_matches_reference_and_is_one_for_equal_images():
     b = (a + 0.1 * torch.rand(30, 40, 3, generator=g)).clamp(0, 1)
     assert torch.allclose(ssim_map(a, b), ssim_reference(a, b), atol=1e-5)
     assert torch.allclose(ssim_map(a, a), torch.ones(30, 40), atol=1e-5)
+
+
+def test_fast_ssim_and_blur_match_the_convolution_version_with_gradients():
+    g = torch.Generator().manual_seed(1)
+    a = torch.rand(37, 53, 3, generator=g)
+    b = (a + 0.2 * torch.rand(37, 53, 3, generator=g)).clamp(0, 1)
+    w = torch.rand(37, 53, generator=g)
+    a1 = a.clone().requires_grad_(True)
+    a2 = a.clone().requires_grad_(True)
+    s1 = ssim_reference(a1, b)
+    s2 = ssim_map_fast(a2, b, ssim_target_stats(b))
+    assert torch.allclose(s1, s2, atol=1e-5)
+    (s1 * w).sum().backward()
+    (s2 * w).sum().backward()
+    assert torch.allclose(a1.grad, a2.grad, atol=1e-5)
+    # the blur is self-adjoint: <blur(x), y> = <x, blur(y)>, and its gradient is the blur
+    win = torch.tensor([0.1, 0.2, 0.4, 0.2, 0.1])
+    x = torch.rand(2, 9, 13, generator=g, dtype=torch.float32).requires_grad_(True)
+    y = torch.rand(2, 9, 13, generator=g)
+    fx = sep_blur(x, win)
+    ref = torch.nn.functional.conv2d(torch.nn.functional.conv2d(
+        x.detach()[:, None], win.reshape(1, 1, 1, 5), padding=(0, 2)), win.reshape(1, 1, 5, 1), padding=(2, 0))[:, 0]
+    assert torch.allclose(fx, ref, atol=1e-6)
+    assert float((fx.detach() * y).sum()) == pytest.approx(float((x.detach() * sep_blur(y, win)).sum()), rel=1e-5)
+    (fx * y).sum().backward()
+    assert torch.allclose(x.grad, sep_blur(y, win), atol=1e-6)
 
 
 def test_depth_normal_and_accumulation_losses():
@@ -244,6 +314,10 @@ def test_depth_normal_and_accumulation_losses():
     assert float(depth_loss(d * 1.1, d, torch.ones_like(d), valid)) == pytest.approx(0.1, rel=1e-5)
     w = torch.full_like(d, 0.5)
     assert float(depth_loss(d * 1.1, d, w, valid)) == pytest.approx(0.05, rel=1e-5)
+    # infinite inverse-depth variance (no depth, depth 0) gives weight 0, never NaN
+    from vings_core.mapping.losses import depth_weight
+    wd = depth_weight(torch.tensor([0.0, 2.0, 2.0]), torch.tensor([float("inf"), float("inf"), 0.0]), 0.02)
+    assert torch.equal(wd, torch.tensor([0.0, 0.0, 1.0]))
     a = torch.full_like(d, 0.3)
     m = torch.zeros_like(valid)
     assert float(accumulation_loss(a, m)) == 0.0
@@ -468,15 +542,46 @@ def test_mapping_fits_keyframes_and_deletes_floaters(room_small):
     fl = GaussianMap.create(torch.from_numpy(p[None].astype(np.float32)), torch.tensor([[0.0, 0, 0, 1]]),
                             torch.full((1, 2), math.log(0.05)), torch.tensor([5.0]), torch.full((1, 1, 3), -1.5),
                             kf_id=frames[0].stamp_ns)
-    m.gm = GaussianMap.concat([m.gm, fl])
+    # and a splat whose parameters went non-finite is removed too (never rendered or trained again)
+    bad = GaussianMap.create(torch.tensor([[float("nan"), 0.0, 1.0]]), torch.tensor([[0.0, 0, 0, 1]]),
+                             torch.full((1, 2), math.log(0.05)), torch.tensor([0.0]), torch.zeros((1, 1, 3)),
+                             kf_id=frames[0].stamp_ns)
+    m.gm = GaussianMap.concat([m.gm, fl, bad])
     n = len(m.gm)
     info = m.add_keyframe(kf)
-    assert info["deleted"] >= 1
+    assert info["deleted"] >= 2 and info["delete_rules"]["non_finite"] == 1
+    assert torch.isfinite(m.gm.means).all()
     assert not (torch.isclose(m.gm.means, fl.means).all(1)).any()
     assert len(m.gm) == n - info["deleted"] + info["added"]
     r = m.render(kf.T_wc.numpy(), cam)
     assert r["color"].shape == (cam.height, cam.width, 3) and r["depth"].dtype == np.float32
     assert np.isfinite(r["depth"]).all() and (r["alpha"] <= 1.0 + 1e-6).all()
+
+
+def test_unknown_depth_is_seeded_and_not_forced_empty(room_small):
+    """Front-end style keyframe: a band of pixels without depth (dropped as uncertain: depth 0, large
+    inverse-depth variance). With fill_unknown_depth the band is covered and rendered; without it
+    the band stays (nearly) empty. Neither run applies the accumulation loss there."""
+    cam, frames = room_small
+    kf = frames[0]
+    d = kf.depth.clone()
+    var = torch.zeros_like(d)
+    d[:, 20:44] = 0
+    var[:, 20:44] = 0.09
+    fe_kf = Keyframe(stamp_ns=kf.stamp_ns, image=kf.image, T_wc=kf.T_wc, depth=d, inv_depth_var=var, valid=d > 0,
+                     camera=cam)
+    cov = {}
+    for fill in (True, False):
+        m = Mapper(MapperConfig(points_per_keyframe=2500, iters_per_keyframe=30, sample_ratio=1.0,
+                                fill_unknown_depth=fill))
+        m.add_keyframe(fe_kf)
+        m.train()
+        r = m.render(kf.T_wc.numpy(), cam)
+        cov[fill] = float(r["alpha"][:, 24:40].mean())
+        if fill:
+            err = np.abs(r["depth"][:, 24:40] - kf.depth[:, 24:40].numpy()) / kf.depth[:, 24:40].numpy()
+            assert np.median(err) < 0.1
+    assert cov[True] > 0.8 and cov[False] < 0.5
 
 
 def _pose_err(T, T_gt):

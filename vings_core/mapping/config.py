@@ -54,6 +54,8 @@ class MapperConfig:
     min_scale_px: float = 0.3          # clamp of the initial sigma, in pixels of the adding frame
     max_scale_px: float = 6.0
     add_alpha_threshold: float = 0.6   # pixels with accumulated alpha below are "low accumulation"
+    fill_unknown_depth: bool = True    # seed low-accumulation pixels whose depth is unknown (dropped as
+                                       # uncertain, not empty) at push-pull-interpolated depth
 
     # ---- deleting conflicting Gaussians when a keyframe arrives
     delete_depth_rel: float = 0.15     # centre in front of the observed surface by > this x depth
@@ -69,6 +71,8 @@ class MapperConfig:
     se_status: float = 0.5             # stable -> unstable when S_E above
     sc_storage: float = 0.5            # prune unstable Gaussians with S_C below
     min_score_age: int = 100           # iterations of scoring before a Gaussian may be judged
+    prune_window_owned_only: bool = True  # storage control prunes only Gaussians whose ID(g) is a
+                                       # window keyframe (False: the paper's rule on every Gaussian)
 
     # ---- storage tiers (paper "GPU-CPU transfer")
     delta_k: int = 8                   # tier update every n keyframes
@@ -82,6 +86,7 @@ class MapperConfig:
     refine_iters: int = 10             # per call of refine_poses()
     refine_lr_trans: float = 1.0e-3    # m per Adam step
     refine_lr_rot: float = 2.0e-3      # rad per Adam step
+    refine_lr_decay: bool = True       # step t of a keyframe's refinement uses lr / sqrt(t)
     refine_min_pixels: float = 50.0    # a keyframe needs this much contribution to be refined
     refine_fix_first: bool = True      # gauge: the first keyframe's pose is held fixed
 

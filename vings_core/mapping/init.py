@@ -76,6 +76,49 @@ def usable_depth_mask(kf: Keyframe, max_depth: float, max_rel_std: float) -> tor
     return kf.valid.to(torch.bool) & (d > 0) & (d <= max_depth) & (rel_std <= max_rel_std)
 
 
+def empty_mask(kf: Keyframe, max_depth: float) -> torch.Tensor:
+    """(H, W) bool: pixels the depth source declares *empty* (sky, beyond ``max_depth``), where the
+    accumulation loss keeps the map transparent.
+
+    A pixel is empty when it is not valid and either its depth exceeds ``max_depth`` or it has no
+    surface (depth <= 0) with an inverse-depth standard deviation below ``1 / max_depth`` (1/m): the
+    inverse depth is then known to be ~0, i.e. any surface lies beyond ``max_depth`` at 1 sigma
+    (ground-truth / rendered depth of the sky: variance 0). Pixels without depth because the
+    estimate is *uncertain* (front-end depth dropped for high variance) are unknown, not empty:
+    forcing them transparent would punch black holes into surfaces other keyframes see well.
+    """
+    d = kf.depth.to(torch.float32)
+    std = torch.sqrt(kf.inv_depth_var.to(torch.float32).clamp_min(0))
+    return (~kf.valid.to(torch.bool)) & ((d > max_depth) | ((d <= 0) & (std < 1.0 / max_depth)))
+
+
+def fill_depth(depth: torch.Tensor, known: torch.Tensor) -> torch.Tensor:
+    """Fill the pixels outside ``known`` by push-pull interpolation of the known depths.
+
+    Push: a pyramid of 2x2 averages of ``(depth * known, known)`` until no level has holes; pull:
+    from the coarsest level down, each hole takes the bilinear upsampling of the coarser filled
+    level. Known pixels keep their depth exactly; holes get a smooth blend of the surrounding known
+    depths (a wall without texture, whose depth the front end dropped, gets the depth of its
+    outline). Returns (H, W); all zeros when nothing is known. Vectorised (no pixel loops).
+    """
+    F = torch.nn.functional
+    w = known.to(torch.float32)
+    if not bool(w.any()):
+        return torch.zeros_like(depth, dtype=torch.float32)
+    d = torch.where(known, depth.to(torch.float32), torch.zeros((), dtype=torch.float32))
+    levels = [(d[None, None], w[None, None])]
+    while bool((levels[-1][1] <= 0).any()) and min(levels[-1][1].shape[-2:]) > 1:
+        dl, wl = levels[-1]
+        levels.append((F.avg_pool2d(dl, 2, ceil_mode=True), F.avg_pool2d(wl, 2, ceil_mode=True)))
+    dl, wl = levels[-1]
+    filled = torch.where(wl > 0, dl / wl.clamp_min(1e-12), (dl.sum() / wl.sum()).expand_as(dl))
+    for dl, wl in reversed(levels[:-1]):
+        up = F.interpolate(filled, size=dl.shape[-2:], mode="bilinear", align_corners=False)
+        filled = torch.where(wl > 0, dl / wl.clamp_min(1e-12), up)
+    out = filled[0, 0]
+    return torch.where(known, depth.to(torch.float32), out)
+
+
 def sample_pixels(mask: torch.Tensor, n: int, generator: torch.Generator | None = None) -> torch.Tensor:
     """Up to ``n`` distinct (row, col) indices drawn uniformly from the True pixels of ``mask``."""
     idx = mask.reshape(-1).nonzero()[:, 0]

@@ -7,8 +7,10 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import torch
 import torch.nn.functional as F
+from numba import njit, prange
 
 from ..types import CameraModel
 
@@ -43,6 +45,102 @@ def ssim_map(a: torch.Tensor, b: torch.Tensor, size: int = 11, sigma: float = 1.
     return s[0].mean(0)
 
 
+@njit(parallel=True, cache=True)
+def _sep_blur_kernel(x, g, out):  # pragma: no cover - compiled
+    """Separable zero-padded blur of (C, H, W) float32 ``x`` with the 1-D window ``g`` into ``out``."""
+    C, H, W = x.shape
+    r = g.shape[0] // 2
+    tmp = np.empty_like(x)
+    for idx in prange(C * H):
+        c = idx // H
+        i = idx % H
+        for j in range(W):
+            tmp[c, i, j] = 0.0
+        for k in range(2 * r + 1):
+            gk = g[k]
+            o = k - r
+            j0 = max(0, -o)
+            j1 = min(W, W - o)
+            for j in range(j0, j1):
+                tmp[c, i, j] += gk * x[c, i, j + o]
+    for idx in prange(C * H):
+        c = idx // H
+        i = idx % H
+        for j in range(W):
+            out[c, i, j] = 0.0
+        k0 = max(0, r - i)
+        k1 = min(2 * r + 1, H + r - i)
+        for k in range(k0, k1):
+            gk = g[k]
+            ii = i + k - r
+            for j in range(W):
+                out[c, i, j] += gk * tmp[c, ii, j]
+
+
+def sep_blur(x: torch.Tensor, g: torch.Tensor) -> torch.Tensor:
+    """(C, H, W) float32 CPU -> same-size blur with the symmetric 1-D window ``g`` along both axes,
+    zero padding (what :func:`ssim_map`'s two convolutions compute). Differentiable: the operator is
+    self-adjoint (symmetric window, zero padding), so the backward pass is the same blur."""
+    return _SepBlur.apply(x, g)
+
+
+class _SepBlur(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, x, g):  # noqa: D401
+        ctx.g = g
+        xx = x.detach().contiguous()
+        out = torch.empty_like(xx)
+        _sep_blur_kernel(xx.numpy(), g.numpy(), out.numpy())
+        return out
+
+    @staticmethod
+    def backward(ctx, grad):
+        gg = grad.contiguous()
+        out = torch.empty_like(gg)
+        _sep_blur_kernel(gg.numpy(), ctx.g.numpy(), out.numpy())
+        return out, None
+
+
+_WINDOWS: dict = {}
+
+
+def _window(size: int, sigma: float) -> torch.Tensor:
+    key = (size, sigma)
+    if key not in _WINDOWS:
+        _WINDOWS[key] = _gauss_window(size, sigma, torch.float32).contiguous()
+    return _WINDOWS[key]
+
+
+def ssim_target_stats(b: torch.Tensor, size: int = 11, sigma: float = 1.5) -> tuple[torch.Tensor, torch.Tensor]:
+    """Blurred mean and second moment ``(mu_y, E[y^2])``, (C, H, W) each, of a target image
+    (H, W, C): constant per keyframe, so :func:`ssim_map_fast` can reuse them."""
+    y = b.to(torch.float32).permute(2, 0, 1)
+    f = sep_blur(torch.cat([y, y * y], 0).contiguous(), _window(size, sigma))
+    C = y.shape[0]
+    return f[:C], f[C:]
+
+
+def ssim_map_fast(a: torch.Tensor, b: torch.Tensor, target_stats: tuple | None = None, size: int = 11,
+                  sigma: float = 1.5) -> torch.Tensor:
+    """Same SSIM map as :func:`ssim_map` (float32, CPU) with a compiled separable blur, and only the
+    three prediction-dependent moments blurred per call when the target's moments are given
+    (``target_stats = ssim_target_stats(b)``)."""
+    if a.device.type != "cpu" or a.dtype != torch.float32:
+        return ssim_map(a, b, size, sigma)
+    C = a.shape[-1]
+    x = a.permute(2, 0, 1)
+    y = b.to(torch.float32).permute(2, 0, 1)
+    mu_y, yy = target_stats if target_stats is not None else ssim_target_stats(b, size, sigma)
+    f = sep_blur(torch.cat([x, x * x, x * y], 0).contiguous(), _window(size, sigma))
+    mu_x, xx, xy = f[:C], f[C:2 * C], f[2 * C:]
+    sxx = xx - mu_x ** 2
+    syy = yy - mu_y ** 2
+    sxy = xy - mu_x * mu_y
+    C1, C2 = 0.01 ** 2, 0.03 ** 2
+    s = ((2 * mu_x * mu_y + C1) * (2 * sxy + C2)) / ((mu_x ** 2 + mu_y ** 2 + C1) * (sxx + syy + C2))
+    return s.mean(0)
+
+
 def ssim_reference(a: torch.Tensor, b: torch.Tensor, size: int = 11, sigma: float = 1.5) -> torch.Tensor:
     """Slow reference SSIM map with an explicit 2-D window (for tests)."""
     C = a.shape[-1]
@@ -67,12 +165,15 @@ def l1_map(pred: torch.Tensor, gt: torch.Tensor) -> torch.Tensor:
 
 
 def rgb_loss(pred: torch.Tensor, gt: torch.Tensor, lambda_ssim: float = 0.2,
-             mask: torch.Tensor | None = None) -> torch.Tensor:
-    """``(1 - l) L1 + l (1 - SSIM)`` averaged over pixels (or over ``mask``)."""
-    l1 = l1_map(pred, gt)
+             mask: torch.Tensor | None = None, target_stats: tuple | None = None,
+             l1: torch.Tensor | None = None) -> torch.Tensor:
+    """``(1 - l) L1 + l (1 - SSIM)`` averaged over pixels (or over ``mask``). ``target_stats``:
+    cached :func:`ssim_target_stats` of ``gt``; ``l1``: the (differentiable) :func:`l1_map` if the
+    caller already has it."""
+    l1 = l1_map(pred, gt) if l1 is None else l1
     term = (1 - lambda_ssim) * l1
     if lambda_ssim > 0:
-        term = term + lambda_ssim * (1 - ssim_map(pred, gt))
+        term = term + lambda_ssim * (1 - ssim_map_fast(pred, gt, target_stats))
     if mask is None:
         return term.mean()
     m = mask.to(term.dtype)
@@ -85,7 +186,9 @@ def depth_weight(depth: torch.Tensor, inv_depth_var: torch.Tensor, rel_std0: flo
     ``sigma_d / d = sqrt(var(1/d)) * d`` (first-order propagation of the inverse-depth variance).
     """
     rel = torch.sqrt(inv_depth_var.clamp_min(0)) * depth
-    return 1.0 / (1.0 + (rel / rel_std0) ** 2)
+    w = 1.0 / (1.0 + (rel / rel_std0) ** 2)
+    # infinite variance: weight 0 (inf * 0 depth would give NaN and poison the whole loss)
+    return torch.where(torch.isfinite(w), w, torch.zeros((), dtype=w.dtype))
 
 
 def depth_loss(pred: torch.Tensor, gt: torch.Tensor, weight: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
@@ -111,7 +214,10 @@ def normals_from_depth(depth: torch.Tensor, camera: CameraModel) -> tuple[torch.
     du[:, 1:-1] = P[:, 2:] - P[:, :-2]
     dv[1:-1] = P[2:] - P[:-2]
     n = torch.cross(du, dv, dim=-1)
-    n = n / torch.linalg.norm(n, dim=-1, keepdim=True).clamp_min(1e-12)
+    # sqrt of the clamped squared norm: finite gradients where n = 0 (empty pixels, depth 0);
+    # linalg.norm's backward is 0/0 = NaN there even under a zero mask, and the NaN reached the
+    # rasterizer's backward through dL/d(depth)
+    n = n / torch.sqrt((n * n).sum(-1, keepdim=True).clamp_min(1e-24))
     n = torch.where(((n * P).sum(-1, keepdim=True) > 0), -n, n)
     ok = torch.zeros_like(depth, dtype=torch.bool)
     d = depth.detach()
@@ -129,7 +235,8 @@ def normal_loss(n_render: torch.Tensor, n_depth: torch.Tensor, weight: torch.Ten
 
 
 def accumulation_loss(alpha: torch.Tensor, masked: torch.Tensor) -> torch.Tensor:
-    """Masked-out pixels (no usable depth: sky, excessive depth) must stay empty: ``mean_masked alpha``."""
+    """Pixels known to be empty (``init.empty_mask``: sky, beyond max depth) must stay transparent:
+    ``mean_masked alpha``."""
     if not bool(masked.any()):
         return alpha.sum() * 0
     return alpha[masked].mean()

@@ -37,9 +37,9 @@ from . import scores as S
 from .config import MapperConfig
 from .gaussians import ALL_FIELDS, PARAM_FIELDS, GaussianMap, quat_multiply
 from .lie import se3_exp_safe
-from .init import gaussians_from_pixels, num_to_add, sample_pixels, usable_depth_mask, depth_normals
+from .init import depth_normals, empty_mask, fill_depth, gaussians_from_pixels, num_to_add, sample_pixels, usable_depth_mask
 from .losses import (accumulation_loss, depth_loss, depth_weight, l1_map, normal_loss, normals_from_depth,
-                     rgb_loss)
+                     rgb_loss, ssim_target_stats)
 from .optim import sparse_adam_step_fast
 from .storage import PassiveStore, active_split, owner_distances
 
@@ -72,8 +72,9 @@ class Mapper:
         self._loss_maps: dict[int, torch.Tensor] = {}  # last per-pixel L1 map of window keyframes
         self._aux: dict[int, dict] = {}               # cached per-keyframe masks / weights
         self._pose_adam: dict[int, tuple] = {}        # stamp -> (m (6,), v (6,), steps) of pose refinement
+        self._pose_v = np.zeros(7)                    # shared second moment of pose gradients (6,) + its steps
         self._history: dict[int, dict] = {}           # keyframes that left the window (compact, see _compact)
-        self.counters = dict(added=0, deleted=0, pruned=0, to_stable=0, to_unstable=0, to_passive=0,
+        self.counters = dict(added=0, deleted=0, pruned=0, nonfinite_grads=0, to_stable=0, to_unstable=0, to_passive=0,
                              from_passive=0, tier_updates=0)
         self.timings = dict(add_s=0.0, train_s=0.0, refine_s=0.0)
         self._bg = torch.tensor(self.cfg.background, dtype=torch.float32)
@@ -133,7 +134,8 @@ class Mapper:
         add Gaussians from its depth in low-accumulation regions. Returns counts."""
         t0 = time.perf_counter()
         self._check_keyframe(kf)
-        kf = replace(kf, T_wc=kf.T_wc.clone(), image=kf.image.to(torch.float32)[..., :3].contiguous(),
+        T_ok = torch.from_numpy(_check_pose(kf.T_wc.numpy(), f"keyframe {kf.stamp_ns} T_wc"))
+        kf = replace(kf, T_wc=T_ok, image=kf.image.to(torch.float32)[..., :3].contiguous(),
                      depth=kf.depth.to(torch.float32), inv_depth_var=kf.inv_depth_var.to(torch.float32),
                      valid=kf.valid.to(torch.bool))
         s = int(kf.stamp_ns)
@@ -304,6 +306,7 @@ class Mapper:
         d["pose_adam/m"] = np.stack([self._pose_adam[s][0] for s in pa]) if pa else np.zeros((0, 6))
         d["pose_adam/v"] = np.stack([self._pose_adam[s][1] for s in pa]) if pa else np.zeros((0, 6))
         d["pose_adam/steps"] = np.array([self._pose_adam[s][2] for s in pa], dtype=np.int64)
+        d["pose_adam/v_shared"] = self._pose_v.copy()
 
         def _w(tmp: str) -> None:
             with open(tmp, "wb") as f:
@@ -350,6 +353,8 @@ class Mapper:
                 m._history[int(s_)] = {k: torch.from_numpy(np.array(z[f"hist/{k}"][j]))
                                        for k in ("image", "depth", "inv_depth_var", "valid")}
                 m._history[int(s_)]["index"] = int(z["hist/index"][j])
+            if "pose_adam/v_shared" in z:
+                m._pose_v = np.array(z["pose_adam/v_shared"], dtype=np.float64)
             m._pose_adam = {int(s): (np.array(a), np.array(b), int(c)) for s, a, b, c in
                             zip(z["pose_adam/stamps"], z["pose_adam/m"], z["pose_adam/v"], z["pose_adam/steps"])}
         except KeyError as e:
@@ -429,6 +434,14 @@ class Mapper:
         T_cw = pose_inverse(T_wc)
         usable = usable_depth_mask(kf, cfg.max_depth, cfg.max_depth_rel_std)
         depth = kf.depth
+        # pixels that may seed Gaussians: usable depth, and (fill_unknown_depth) pixels whose depth is
+        # unknown (dropped as uncertain, not known empty) at depth interpolated from the usable ones
+        seed, seed_depth = usable, depth
+        if cfg.fill_unknown_depth and bool(usable.any()):
+            unknown = ~usable & ~empty_mask(kf, cfg.max_depth)
+            if bool(unknown.any()):
+                seed = usable | unknown
+                seed_depth = fill_depth(depth, usable)
         n_del = 0
         self._last_delete = {}
         if len(self.gm):
@@ -444,16 +457,17 @@ class Mapper:
             alpha = out.alpha
             exp_d = out.depth / alpha.clamp_min(1e-10)
             # low accumulation, or the observed surface lies clearly in front of what is rendered
-            behind = (alpha > cfg.add_alpha_threshold) & (exp_d > depth * (1 + cfg.delete_depth_rel))
-            low = usable & ((alpha < cfg.add_alpha_threshold) | behind)
+            behind = usable & (alpha > cfg.add_alpha_threshold) & (exp_d > depth * (1 + cfg.delete_depth_rel))
+            low = seed & ((alpha < cfg.add_alpha_threshold) | behind)
         else:
-            low = usable
+            low = seed
         n_add = num_to_add(low, cfg.points_per_keyframe)
         if n_add > 0:
             rc = sample_pixels(low, n_add, self.rng)
-            new = gaussians_from_pixels(kf, rc, cfg.sh_degree, cfg.init_opacity, cfg.init_scale_factor,
+            src = kf if seed_depth is depth else replace(kf, depth=seed_depth)
+            new = gaussians_from_pixels(src, rc, cfg.sh_degree, cfg.init_opacity, cfg.init_scale_factor,
                                         cfg.min_scale_px, cfg.max_scale_px, score_since=self.render_count,
-                                        normals_cam=depth_normals(depth, cam), window=cfg.window_size)
+                                        normals_cam=depth_normals(seed_depth, cam), window=cfg.window_size)
             self.gm = GaussianMap.concat([self.gm, new.to(self.device)])
         self.counters["added"] += n_add
         self.counters["deleted"] += n_del
@@ -479,6 +493,10 @@ class Mapper:
         R = T_cw[:3, :3].to(torch.float32)
         t = T_cw[:3, 3].to(torch.float32)
         pc = self.gm.means @ R.T + t
+        finite = torch.isfinite(self.gm.means).all(1) & torch.isfinite(self.gm.log_scales).all(1) & \
+            torch.isfinite(self.gm.quats).all(1) & torch.isfinite(self.gm.opacity_logits.reshape(len(pc), -1)).all(1) & \
+            torch.isfinite(self.gm.sh.reshape(len(pc), -1)).all(1)
+        pc = torch.where(finite[:, None], pc, torch.zeros((), dtype=pc.dtype))
         z = pc[:, 2]
         front = z > 1e-3
         u = torch.round(pc[:, 0] / z.clamp_min(1e-6) * cam.fx + cam.cx)
@@ -502,7 +520,8 @@ class Mapper:
             (out.radii.to(self.device) > cfg.delete_max_radius_frac * math.hypot(W, H))
         self._last_delete = {"floater": int(floater.sum()), "wrong_colour": int(on_surface.sum()),
                              "too_big": int(too_big.sum())}
-        return floater | on_surface | too_big
+        self._last_delete["non_finite"] = int((~finite).sum())
+        return floater | on_surface | too_big | ~finite
 
     # ---------------------------------------------------------------- training
     def _next_kf(self, queue: list[int]) -> Keyframe:
@@ -522,17 +541,30 @@ class Mapper:
             cfg = self.cfg
             a = {"T": kf.depth, "usable": usable_depth_mask(kf, cfg.max_depth, cfg.max_depth_rel_std),
                  "w_depth": depth_weight(kf.depth, kf.inv_depth_var, cfg.depth_rel_std0),
-                 "masked": (~kf.valid) & ((kf.depth <= 0) | (kf.depth > cfg.max_depth))}
+                 "masked": empty_mask(kf, cfg.max_depth),
+                 "ssim_stats": ssim_target_stats(kf.image) if cfg.lambda_ssim > 0 else None}
             if kf.stamp_ns not in self._history:
                 self._aux[kf.stamp_ns] = a
         return a
 
-    def _losses(self, out, kf: Keyframe, it_terms: dict, with_normal: bool = True, with_acc: bool = True):
+    def _losses(self, out, kf: Keyframe, it_terms: dict, with_normal: bool = True, with_acc: bool = True,
+                expected_depth: bool = False):
+        """Training loss of one render. ``expected_depth`` (pose refinement): the depth term compares
+        the expected depth ``D_hat / alpha`` where ``alpha > 0.5`` instead of the accumulated depth
+        ``D_hat``: the accumulated depth is short of the surface wherever alpha < 1, which for the
+        map means "fill this pixel" but would pull a camera along its axis."""
         cfg = self.cfg
         img = kf.image
         aux = self._kf_aux(kf)
-        l_rgb = rgb_loss(out.color, img, cfg.lambda_ssim)
-        l_d = depth_loss(out.depth, kf.depth, aux["w_depth"], aux["usable"])
+        l1 = l1_map(out.color, img)
+        it_terms["l1_map"] = l1.detach()
+        l_rgb = rgb_loss(out.color, img, cfg.lambda_ssim, target_stats=aux["ssim_stats"], l1=l1)
+        if expected_depth:
+            a = out.alpha
+            l_d = depth_loss(out.depth / a.clamp_min(1e-6), kf.depth, aux["w_depth"],
+                             aux["usable"] & (a.detach() > 0.5))
+        else:
+            l_d = depth_loss(out.depth, kf.depth, aux["w_depth"], aux["usable"])
         total = cfg.lambda_rgb * l_rgb + cfg.lambda_depth * l_d
         l_n = torch.zeros(())
         l_a = torch.zeros(())
@@ -574,11 +606,11 @@ class Mapper:
         leaves = {p: getattr(gm, p).detach().requires_grad_(True) for p in PARAM_FIELDS}
         stale = None if hist is not None else self._loss_maps.get(kf.stamp_ns)
         out = self._rasterize(gm, T_cw, kf.camera, sample_ratio=cfg.sample_ratio, loss_map=stale, **leaves)
-        l1 = l1_map(out.color.detach(), kf.image)
-        if cfg.sample_ratio < 1.0:
-            out.set_sample_map(l1)
         terms: dict = {}
         loss = self._losses(out, kf, terms)
+        l1 = terms.pop("l1_map")
+        if cfg.sample_ratio < 1.0:
+            out.set_sample_map(l1)
         loss.backward()
         terms["psnr"] = -10 * math.log10(max(float((out.color.detach().clamp(0, 1) - kf.image).pow(2).mean()), 1e-12))
         with torch.no_grad():
@@ -597,6 +629,10 @@ class Mapper:
                     g = leaves[p].grad
                     if g is None:
                         continue
+                    bad = ~torch.isfinite(g)
+                    if bool(bad.any()):          # never let a degenerate splat poison the map
+                        self.counters["nonfinite_grads"] += int(bad.reshape(len(g), -1).any(1).sum())
+                        g = torch.where(bad, torch.zeros((), dtype=g.dtype), g)
                     sparse_adam_step_fast(getattr(gm, p), g, getattr(gm, f"m_{p}"), getattr(gm, f"v_{p}"),
                                           gm.adam_step, rows, lrs[p], betas, cfg.adam_eps)
             self.render_count += 1
@@ -637,7 +673,11 @@ class Mapper:
             s_c, s_e = S.window_scores(gm.win_c, gm.win_e)
             judged = S.scored_long_enough(gm.score_since, j, cfg.min_score_age)
         if storage_now:
-            prune = S.storage_control(gm.stable, s_c, judged, cfg.sc_storage, cfg.sc_status)
+            owned = None
+            if cfg.prune_window_owned_only:
+                win = torch.tensor([x for x in self._slots if x != -1], dtype=gm.kf_id.dtype, device=gm.kf_id.device)
+                owned = torch.isin(gm.kf_id, win)
+            prune = S.storage_control(gm.stable, s_c, judged, cfg.sc_storage, cfg.sc_status, owned)
             n = int(prune.sum())
             if n:
                 self.gm = gm.remove(prune)
@@ -680,6 +720,7 @@ class Mapper:
         lr = torch.tensor([cfg.refine_lr_trans] * 3 + [cfg.refine_lr_rot] * 3, dtype=torch.float64)
         fixed = (owners == first) if first is not None else torch.zeros(U, dtype=torch.bool)
         b1, b2, eps = 0.9, 0.999, 1e-12
+        vs = self._pose_v
         # pose deltas act in each keyframe's camera frame (paper eq. pose_refine): T_k <- T_k exp(xi_k),
         # so rotations turn about the camera centre; keyframe k's Gaussians move by T_k exp(xi_k) T_k^-1
         T_own = torch.from_numpy(np.stack([self._poses.get(int(o), np.eye(4)) for o in owners.tolist()])) \
@@ -702,7 +743,8 @@ class Mapper:
             else:
                 out = self._rasterize(gm, T_cw.to(torch.float32), kf.camera, sample_ratio=1.0)
             terms: dict = {}
-            loss = self._losses(out, kf, terms, with_normal=False, with_acc=False)
+            loss = self._losses(out, kf, terms, with_normal=False, with_acc=False, expected_depth=True)
+            terms.pop("l1_map", None)
             loss.backward()
             g = x.grad.detach().clone()
             if mode == "multi":
@@ -719,7 +761,20 @@ class Mapper:
             m[upd] = b1 * m[upd] + (1 - b1) * g[upd]
             v[upd] = b2 * v[upd] + (1 - b2) * g[upd] ** 2
             t = steps[upd].to(torch.float64)[:, None]
-            xi[upd] -= lr * (m[upd] / (1 - b1 ** t)) / ((v[upd] / (1 - b2 ** t)).sqrt() + eps)
+            # second moment shared by all keyframes (per se(3) component): a keyframe whose gradient
+            # is small compared with the others' (a direction the render hardly observes, e.g. a
+            # keyframe that sees mostly its own Gaussians) takes a proportionally small step; a
+            # per-keyframe normalisation would blow its gradient noise up to full-size steps
+            vs[:6] = b2 * vs[:6] + (1 - b2) * (g[upd] ** 2).mean(0).numpy()
+            vs[6] += 1
+            v_hat = torch.as_tensor(vs[:6] / (1 - b2 ** vs[6]))[None]
+            # step size lr / sqrt(t) over the keyframe's lifetime of refinement steps (stochastic
+            # approximation schedule): Adam's steps are ~lr whatever the gradient size, so with a
+            # constant rate a converged pose random-walks on the gradient noise (~lr sqrt(N) after N
+            # steps); with the decay the walk stays ~lr sqrt(ln N) while sum lr/sqrt(t) still allows
+            # centimetre corrections
+            rate = lr / t.sqrt() if cfg.refine_lr_decay else lr
+            xi[upd] -= rate * (m[upd] / (1 - b1 ** t)) / (v_hat.sqrt() + eps)
         for i in (steps > 0).nonzero()[:, 0].tolist():
             self._pose_adam[int(owners[i])] = (m[i].numpy().copy(), v[i].numpy().copy(), int(steps[i]))
         # commit: T_k <- exp(xi_k) T_k; in multi mode the owners' Gaussians move with them
@@ -744,7 +799,10 @@ def _compact(kf: Keyframe) -> dict:
     """A keyframe that left the window, kept for history training: RGB as uint8 (the inputs are 8-bit
     images), depth and inverse-depth variance as float16, validity as bool (~0.6 MB at 376x240)."""
     return {"image": torch.round(kf.image.clamp(0, 1) * 255).to(torch.uint8),
-            "depth": kf.depth.to(torch.float16), "inv_depth_var": kf.inv_depth_var.to(torch.float16),
+            "depth": kf.depth.to(torch.float16),
+            # float16 overflows above 65504 (the front end sends up to 1e10 for "unknown"): clamp, a
+            # standard deviation of 256 1/m is as unusable as infinity
+            "inv_depth_var": kf.inv_depth_var.clamp(0, 65504.0).to(torch.float16),
             "valid": kf.valid.clone(), "index": int(kf.index)}
 
 
@@ -760,6 +818,12 @@ def _check_pose(T, what: str) -> np.ndarray:
     if T.shape != (4, 4) or not np.isfinite(T).all():
         raise InputError(f"{what}: expected a finite 4x4 pose, got shape {T.shape}")
     R = T[:3, :3]
-    if np.abs(R @ R.T - np.eye(3)).max() > 1e-4 or abs(np.linalg.det(R) - 1) > 1e-4:
-        raise InputError(f"{what}: rotation block is not orthonormal")
+    dev = max(float(np.abs(R @ R.T - np.eye(3)).max()), abs(float(np.linalg.det(R)) - 1))
+    if dev > 1e-2 or not np.allclose(T[3], [0, 0, 0, 1]):
+        raise InputError(f"{what}: not a rigid pose (rotation block deviates from orthonormal by {dev:.2g})")
+    if dev > 1e-9:
+        # round-off of composed increments (e.g. many pose corrections): project onto SO(3)
+        U, _, Vt = np.linalg.svd(R)
+        T = T.copy()
+        T[:3, :3] = U @ np.diag([1.0, 1.0, float(np.sign(np.linalg.det(U @ Vt)))]) @ Vt
     return T

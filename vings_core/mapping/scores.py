@@ -64,7 +64,8 @@ def status_control(stable: torch.Tensor, s_c: torch.Tensor, s_e: torch.Tensor, j
 
 
 def storage_control(stable: torch.Tensor, s_c: torch.Tensor, judged: torch.Tensor,
-                    sc_storage: float, sc_status: float = 0.0) -> torch.Tensor:
+                    sc_storage: float, sc_status: float = 0.0,
+                    owned_by_window: torch.Tensor | None = None) -> torch.Tensor:
     """Prune mask: unstable Gaussians, judged, with ``sc_status <= S_C < sc_storage`` (seen by the
     window but contributing little).
 
@@ -72,8 +73,13 @@ def storage_control(stable: torch.Tensor, s_c: torch.Tensor, judged: torch.Tenso
     freezes them: in Algorithm 1 status control runs first on the same iteration, so such Gaussians
     are stable (and protected) before storage control looks at them. Storage control may run more
     often than status control here, so the exclusion is explicit.
+
+    ``owned_by_window`` (optional bool mask): only these Gaussians may be pruned, i.e. those whose
+    ID(g) (best view so far) is a window keyframe. A Gaussian whose best view has left the window
+    mostly serves that older view; a low window sum then says little about its worth.
     """
-    return (~stable) & judged & (s_c >= sc_status) & (s_c < sc_storage)
+    prune = (~stable) & judged & (s_c >= sc_status) & (s_c < sc_storage)
+    return prune if owned_by_window is None else prune & owned_by_window
 
 
 def reset_scores(win_c: torch.Tensor, win_e: torch.Tensor, score_since: torch.Tensor,
