@@ -188,3 +188,20 @@ def test_se3_exp_gradient_finite_at_zero():
     (T[:3, 3].sum() + T[:3, :3].sum()).backward()
     assert torch.all(torch.isfinite(xi.grad))
     assert torch.allclose(xi.grad[:3], torch.ones(3, dtype=torch.float64))
+
+
+def test_np_pose_compose_stays_rigid_over_long_chains():
+    """Composing many increments keeps the rotation orthonormal (det +1) and equals plain products."""
+    from vings_core.geometry import np_pose_compose, np_se3_exp
+    rng = np.random.default_rng(3)
+    T = np.eye(4)
+    P = np.eye(4)
+    for _ in range(2000):
+        C = np_se3_exp(rng.normal(scale=0.05, size=6))
+        T = np_pose_compose(C, T)
+        P = C @ P
+    R = T[:3, :3]
+    assert np.abs(R.T @ R - np.eye(3)).max() < 1e-12
+    assert abs(np.linalg.det(R) - 1.0) < 1e-12
+    np.testing.assert_allclose(T, P, atol=1e-9)
+    np.testing.assert_array_equal(T[3], [0, 0, 0, 1])

@@ -145,6 +145,20 @@ def np_pose(R: np.ndarray, t: np.ndarray) -> np.ndarray:
     return T
 
 
+def np_pose_compose(A: np.ndarray, B: np.ndarray) -> np.ndarray:
+    """``A @ B`` for 4x4 rigid transforms with the rotation block projected back onto SO(3) (SVD),
+    so chains of increments do not drift away from orthonormality (float64)."""
+    T = np.asarray(A, np.float64) @ np.asarray(B, np.float64)
+    U, _, Vt = np.linalg.svd(T[:3, :3])
+    R = U @ Vt
+    if np.linalg.det(R) < 0:
+        U[:, -1] *= -1
+        R = U @ Vt
+    T[:3, :3] = R
+    T[3] = (0.0, 0.0, 0.0, 1.0)
+    return T
+
+
 def np_pose_inverse(T: np.ndarray) -> np.ndarray:
     """Inverse of (..., 4, 4) rigid transforms (numpy)."""
     return pose_inverse(torch.as_tensor(np.asarray(T, dtype=np.float64))).numpy()

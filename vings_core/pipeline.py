@@ -33,7 +33,7 @@ from .errors import InputError, VingsError
 from .eval.image import psnr, ssim
 from .eval.output import RunOutput, metrics_template, peak_rss_mb
 from .eval.traj import evaluate_trajectory
-from .geometry import np_pose_inverse, np_se3_log, rotation_angle_deg
+from .geometry import np_pose_compose, np_pose_inverse, np_se3_log, rotation_angle_deg
 from .io.base import Source
 from .types import Frame, Keyframe, Trajectory
 
@@ -210,7 +210,7 @@ class MapperPoseLink:
             P = np.asarray(P, np.float64)
             if not _differs(P, self.fe[s], 1e-12):
                 continue
-            new[s] = pose_correction(P, self.fe[s]) @ have[s]
+            new[s] = np_pose_compose(pose_correction(P, self.fe[s]), have[s])
             self.fe[s] = P.copy()
         if new:
             mapper.set_keyframe_poses(new)
@@ -227,7 +227,7 @@ class MapperPoseLink:
                 C = pose_correction(T, base[s])
                 out[int(s)] = C
                 if s in self.fe:
-                    self.fe[s] = C @ self.fe[s]
+                    self.fe[s] = np_pose_compose(C, self.fe[s])
         return out
 
 
@@ -265,11 +265,11 @@ class FrontendPoseLink:
         if not corrections:
             return {}
         for s, C in corrections.items():
-            self.sent[s] = C @ self.sent[s]          # what the mapper now holds
+            self.sent[s] = np_pose_compose(C, self.sent[s])          # what the mapper now holds
         self.stats["corrections"] += len(corrections)
         accepted = self._accept(frontend, corrections)
         if accepted:
-            frontend.set_poses({s: C @ frontend.pose(s) for s, C in accepted.items()})
+            frontend.set_poses({s: np_pose_compose(C, frontend.pose(s)) for s, C in accepted.items()})
         self.stats["applied"] += len(accepted)
         self.stats["rejected"] += len(corrections) - len(accepted)
         return accepted
