@@ -157,18 +157,24 @@ def schur_reduce(ne: NormalEquations, idx: torch.Tensor, lam: float = 0.0,
     return ReducedSystem(S, y, Ef, Cinv, z, idx)
 
 
+def jittered_cholesky(S: torch.Tensor, jitter: float) -> torch.Tensor:
+    """Lower Cholesky factor of ``S + eps I``: ``eps`` starts at ``jitter`` x the mean |diagonal| and
+    grows 100x per failed try (6 tries), so a nearly singular gauge direction does not break it."""
+    scale = torch.diagonal(S).abs().mean().clamp_min(1e-30)
+    eye = torch.eye(S.shape[0], dtype=S.dtype)
+    for k in range(6):
+        L, info = torch.linalg.cholesky_ex(S + eye * scale * jitter * (100.0 ** k))
+        if int(info) == 0:
+            break
+    return L
+
+
 def solve_reduced(rs: ReducedSystem, jitter: float = 1e-12) -> tuple[torch.Tensor, torch.Tensor]:
     """Solve ``S dxi = y`` (Cholesky, with a tiny relative jitter if needed) and back-substitute
     ``dd = C^-1 (z - E^T dxi)``. Returns ``(dxi (F,6), dd (MP,))``."""
-    n = rs.S.shape[0]
-    if n == 0:
+    if rs.S.shape[0] == 0:
         return torch.zeros(0, 6, dtype=DT), rs.Cinv * rs.z
-    scale = torch.diagonal(rs.S).abs().mean().clamp_min(1e-30)
-    eye = torch.eye(n, dtype=DT)
-    for k in range(6):
-        L, info = torch.linalg.cholesky_ex(rs.S + eye * scale * jitter * (100.0 ** k))
-        if int(info) == 0:
-            break
+    L = jittered_cholesky(rs.S, jitter)
     dxi = torch.cholesky_solve(rs.y[:, None], L)[:, 0]
     dd = rs.Cinv * (rs.z - rs.Ef.T @ dxi)
     return dxi.reshape(-1, 6), dd

@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import torch
 
-from .ba import NormalEquations, ReducedSystem, dense_matrix, schur_reduce
+from .ba import NormalEquations, ReducedSystem, dense_matrix, jittered_cholesky, schur_reduce
 
 DT = torch.float64
 
@@ -25,15 +25,9 @@ def marginal_inv_depth_var(rs: ReducedSystem, jitter: float = 1e-9) -> torch.Ten
     ``jitter`` (relative to the mean diagonal of ``S``) is added before the Cholesky factorisation
     so a nearly singular gauge direction does not break it.
     """
-    n = rs.S.shape[0]
-    if n == 0:
+    if rs.S.shape[0] == 0:
         return rs.Cinv.clone()
-    scale = torch.diagonal(rs.S).abs().mean().clamp_min(1e-30)
-    eye = torch.eye(n, dtype=DT)
-    for k in range(6):
-        L, info = torch.linalg.cholesky_ex(rs.S + eye * scale * jitter * (100.0 ** k))
-        if int(info) == 0:
-            break
+    L = jittered_cholesky(rs.S, jitter)
     G = torch.linalg.solve_triangular(L, rs.Ef * rs.Cinv, upper=False)   # (6F, MP)
     return rs.Cinv + (G * G).sum(0)
 
