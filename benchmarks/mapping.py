@@ -10,7 +10,8 @@ Experiments (``--exp``, comma separated; default all):
   (non-keyframe) views, Gaussian count, mapping time per keyframe.
 * ``frontend``: the full SLAM as ``vings run --sync`` (front end + mapper + pose exchange) on a
   generated room (>= 200 frames): ATE, PSNR on keyframes and novel views from its metrics.json.
-* ``score``: score-manager ablation (manager off, several ``sc_storage``, and the paper's storage
+* ``score``: score-manager ablation (manager off, several ``sc_storage`` with the per-view rule, the
+  window sum rule ``*_sum``, and the paper's storage
   rule on every Gaussian, ``*_all``): Gaussian count and PSNR.
 * ``pose``: pose-refinement ablation from GT + injected noise (2 cm, 1 deg on every keyframe but the
   first, which fixes the gauge): keyframe ATE with no refinement / rendered pose only / all visible
@@ -187,8 +188,12 @@ def exp_score(a, cfg: MapperConfig, base: dict | None) -> dict:
     res = {}
     variants = [("off", replace(cfg, score_manager=False))]
     variants += [(f"{v:g}", replace(cfg, score_manager=True, sc_storage=v)) for v in a.sc_storage]
+    # S_C summed over the window (paper) instead of per viewing keyframe
+    variants += [(f"{v:g}_sum", replace(cfg, score_manager=True, sc_storage=v, sc_storage_per_view=False))
+                 for v in a.sc_storage_sum]
     # the paper's storage rule on every Gaussian (not only those whose ID(g) is a window keyframe)
-    variants += [(f"{v:g}_all", replace(cfg, score_manager=True, sc_storage=v, prune_window_owned_only=False))
+    variants += [(f"{v:g}_all", replace(cfg, score_manager=True, sc_storage=v, prune_window_owned_only=False,
+                                        sc_storage_per_view=False))
                  for v in a.sc_storage_all]
     for name, c in variants:
         m, st = run_mapping(seq, c, kf, tag=f"score[{name}]")
@@ -463,9 +468,12 @@ def main(argv=None) -> int:
     p.add_argument("--max-novel", type=int, default=40)
     p.add_argument("--room-frames", type=int, default=200)
     p.add_argument("--score-frames", type=int, default=100)
-    p.add_argument("--sc-storage", default="0.5,2,8")
-    p.add_argument("--sc-storage-all", default="2",
-                   help="sc_storage values also run with prune_window_owned_only=False (paper rule)")
+    p.add_argument("--sc-storage", default="1,1.6,2")
+    p.add_argument("--sc-storage-sum", default="4,6",
+                   help="sc_storage values run with S_C summed over the window (sc_storage_per_view=False)")
+    p.add_argument("--sc-storage-all", default="",
+                   help="sc_storage values run with the paper's rule: window sum on every Gaussian "
+                        "(sc_storage_per_view=False, prune_window_owned_only=False)")
     p.add_argument("--pose-frames", type=int, default=100)
     p.add_argument("--frontend-frames", type=int, default=200)
     p.add_argument("--workdir", default=os.path.join(os.environ.get("TMPDIR", "/tmp"), "vings_bench_mapping"),
@@ -485,6 +493,7 @@ def main(argv=None) -> int:
     a = p.parse_args(argv)
     a.sc_storage = [float(v) for v in a.sc_storage.split(",") if v]
     a.sc_storage_all = [float(v) for v in a.sc_storage_all.split(",") if v]
+    a.sc_storage_sum = [float(v) for v in a.sc_storage_sum.split(",") if v]
     if a.quick:
         a.room_frames = min(a.room_frames, 40)
         a.score_frames = min(a.score_frames, 30)

@@ -80,6 +80,10 @@ def test_window_slots_give_sum_max_and_argmax_id():
     assert torch.allclose(s_e, torch.tensor([0.5, 0.0, 0.9, 0.3]))
     # ID(g): keyframe with the highest single-render contribution; untouched -> unchanged; ties keep the first
     assert kid.tolist() == [200, 7, 100, 100]
+    # per view: the window sum over the slots that see the Gaussian (a Gaussian seen once with 5 px
+    # outranks one seen twice with 2 px each, unlike the sum)
+    assert torch.allclose(S.per_view_contribution(wc), torch.tensor([2.0, 0.0, 3.0, 2.0]))
+    assert torch.allclose(S.per_view_contribution(torch.tensor([[5.0, 0.0], [2.0, 2.0]])), torch.tensor([5.0, 2.0]))
     # keyframe 100 leaves the window: its scores go
     S.clear_slot(wc, we, 0)
     s_c, s_e = S.window_scores(wc, we)

@@ -69,8 +69,10 @@ class MapperConfig:
     delta_storage: int = 200           # storage control every n iterations
     sc_status: float = 1.0e-4          # unstable -> stable when S_C below
     se_status: float = 0.5             # stable -> unstable when S_E above
-    sc_storage: float = 0.5            # prune unstable Gaussians with S_C below
+    sc_storage: float = 1.6            # prune unstable Gaussians with S_C below (per view, see next)
     min_score_age: int = 100           # iterations of scoring before a Gaussian may be judged
+    sc_storage_per_view: bool = True   # storage control compares S_C per window keyframe that sees the
+                                       # Gaussian (S_C / #views) with sc_storage instead of the sum
     prune_window_owned_only: bool = True  # storage control prunes only Gaussians whose ID(g) is a
                                        # window keyframe (False: the paper's rule on every Gaussian)
 

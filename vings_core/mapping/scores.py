@@ -27,6 +27,14 @@ def window_scores(win_c: torch.Tensor, win_e: torch.Tensor) -> tuple[torch.Tenso
     return win_c.sum(1), win_e.max(1).values
 
 
+def per_view_contribution(win_c: torch.Tensor) -> torch.Tensor:
+    """Window contribution per window keyframe that sees the Gaussian: ``S_C / #{slots with c > 0}``
+    (0 where no window keyframe sees it), (N,). Unlike the sum, it does not favour Gaussians seen by
+    many window keyframes over those at the edge of the window's views."""
+    n = (win_c > 0).sum(1).clamp_min(1)
+    return win_c.sum(1) / n.to(win_c.dtype)
+
+
 def record_render(win_c: torch.Tensor, win_e: torch.Tensor, kf_id: torch.Tensor, id_score: torch.Tensor,
                   slot: int, contrib: torch.Tensor, error: torch.Tensor, stamp_ns: int) -> None:
     """In place: store one render's per-Gaussian contribution/error of keyframe ``stamp_ns`` in its
