@@ -74,6 +74,111 @@ def make_consts(dtype, near: float, far: float) -> np.ndarray:
 # ------------------------------------------------------------------------------ per-Gaussian set-up
 
 
+EXACT_MIN_TILES = 3  # boxes over this many tiles get exact per-row coverage (see _row_span)
+SPAN_MARGIN = 1.0    # px added on both sides of an exact row span (rounding guard)
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def _row_span(aux, g, y, x0, x1):
+    """Pixels ``[xl, xr]`` (inclusive, inside ``[x0, x1]``; ``xl > xr``: none) of pixel row ``y``
+    where Gaussian ``g`` can reach ``rho <= rho_cut``, i.e. ``alpha >= 1/255``.
+
+    A superset, exact up to ``SPAN_MARGIN``: the union of the 3D footprint (``c0^2 + c1^2 <=
+    rho_cut c2^2`` with ``c = (x - mx) A - (y - my) B + C``: a quadratic in ``x`` per row) and the
+    low-pass disc ``2 (dx^2 + dy^2) <= rho_cut``, as the hull of the two. A splat seen at a grazing
+    angle projects to a thin slanted ellipse whose axis-aligned box is mostly empty; one near the
+    camera (hyperbolic footprint) gets the whole image as its box, but only part of each row."""
+    mx = float(aux[g, 0])
+    my = float(aux[g, 1])
+    k2 = float(aux[g, 2])
+    dy = float(y) - my
+    a0 = float(aux[g, 4])
+    a1 = float(aux[g, 5])
+    a2 = float(aux[g, 6])
+    e0 = float(aux[g, 10]) - dy * float(aux[g, 7])
+    e1 = float(aux[g, 11]) - dy * float(aux[g, 8])
+    e2 = float(aux[g, 12]) - dy * float(aux[g, 9])
+    X0 = x0 - mx
+    X1 = x1 - mx
+    lo = np.inf
+    hi = -np.inf
+    r2 = 0.5 * k2 - dy * dy
+    if r2 >= 0.0:
+        r = np.sqrt(r2)
+        lo = -r
+        hi = r
+    al = a0 * a0 + a1 * a1 - k2 * a2 * a2
+    be = a0 * e0 + a1 * e1 - k2 * a2 * e2
+    ga = e0 * e0 + e1 * e1 - k2 * e2 * e2
+    eps = 1e-9 * (a0 * a0 + a1 * a1 + k2 * a2 * a2)
+    if al > eps:
+        disc = be * be - al * ga
+        if disc >= 0.0:
+            sq = np.sqrt(disc)
+            lo = min(lo, (-be - sq) / al)
+            hi = max(hi, (-be + sq) / al)
+    elif al < -eps:
+        disc = be * be - al * ga
+        if disc > 0.0:
+            sq = np.sqrt(disc)
+            ra = (-be + sq) / al
+            rb = (-be - sq) / al
+            rmin = min(ra, rb)
+            rmax = max(ra, rb)
+            if X0 <= rmin:       # f <= 0 outside (rmin, rmax)
+                lo = min(lo, X0)
+                hi = max(hi, min(rmin, X1))
+            if X1 >= rmax:
+                lo = min(lo, max(rmax, X0))
+                hi = max(hi, X1)
+        else:                    # f < 0 everywhere (or NaN: keep the whole row)
+            lo = X0
+            hi = X1
+    else:                        # (near-)parabolic: keep the whole row
+        lo = X0
+        hi = X1
+    if not (lo <= hi):
+        return x0 + 1, x0
+    lo = max(lo - SPAN_MARGIN, X0 - 1.0)
+    hi = min(hi + SPAN_MARGIN, X1 + 1.0)
+    xl = max(x0, int(np.ceil(mx + lo)))
+    xr = min(x1, int(np.floor(mx + hi)))
+    return xl, xr
+
+
+@njit(cache=True, inline="always")
+def _exact_tiles(bbox, g):
+    """Whether Gaussian ``g``'s tiles come from exact row spans (box over >= EXACT_MIN_TILES)."""
+    return (bbox[g, 1] // TILE - bbox[g, 0] // TILE + 1) * (bbox[g, 3] // TILE - bbox[g, 2] // TILE + 1) \
+        >= EXACT_MIN_TILES
+
+
+@njit(cache=True, inline="always")
+def _band_spans(aux, bbox, g, ty, spans):
+    """Row spans of Gaussian ``g`` in tile row ``ty`` (rows clipped to its box) into ``spans[r]``
+    (``r`` = row - ty * TILE; rows outside the box get empty spans). Returns the band's hull
+    ``(xl, xr)`` (``xl > xr``: empty)."""
+    x0 = bbox[g, 0]
+    x1 = bbox[g, 1]
+    hl = x1 + 1
+    hr = x0
+    for r in range(TILE):
+        y = ty * TILE + r
+        if y < bbox[g, 2] or y > bbox[g, 3]:
+            spans[r, 0] = 1
+            spans[r, 1] = 0
+            continue
+        xl, xr = _row_span(aux, g, y, x0, x1)
+        spans[r, 0] = xl
+        spans[r, 1] = xr
+        if xl <= xr:
+            hl = min(hl, xl)
+            hr = max(hr, xr)
+    if hl > hr:
+        return 1, 0
+    return hl, hr
+
+
 @njit(parallel=True, cache=True, error_model="numpy")
 def preprocess(params, cst, width, height, aux, bbox, radii, ntiles):
     """Cull, and compute per Gaussian its pixel bounding box and tile count.
@@ -85,7 +190,8 @@ def preprocess(params, cst, width, height, aux, bbox, radii, ntiles):
     at pixel ``(x, y)`` is ``c = (x - mx) A - (y - my) B + C`` (exactly ``h_u x h_v``); computed in
     float64 and centred so that float32 keeps its precision. ``bbox[i] = (x0, x1, y0, y1)`` inclusive pixel ranges (empty
     when culled), ``radii[i]`` the half extent in px (0 when culled), ``ntiles[i]`` the number of
-    16x16 tiles the box touches (0 when culled). Exact: the 3D part is the axis-aligned box of the
+    16x16 tiles the splat touches (0 when culled; for boxes over ``EXACT_MIN_TILES`` or more tiles
+only the tiles its row spans reach, :func:`_row_span`). Exact: the 3D part is the axis-aligned box of the
     projected ellipse ``u^2 + v^2 = rho_cut`` (dual conic ``M diag(k2,k2,-1) M^T``), the low-pass part
     a disc of radius ``sqrt(ln(255 o))`` around the projected centre. A splat whose cut-off disc
     reaches behind the camera plane gets the whole image.
@@ -199,6 +305,21 @@ def preprocess(params, cst, width, height, aux, bbox, radii, ntiles):
         aux[i, 10] = u1 * v2 - u2 * v1
         aux[i, 11] = u2 * v0 - u0 * v2
         aux[i, 12] = u0 * v1 - u1 * v0
+        if _exact_tiles(bbox, i):
+            # tiles the footprint really touches (a slanted or near-camera splat covers few of its box's)
+            spans = np.empty((TILE, 2), np.int64)
+            cnt = 0
+            for ty in range(y0 // TILE, y1 // TILE + 1):
+                hl, hr = _band_spans(aux, bbox, i, ty, spans)
+                if hl <= hr:
+                    cnt += hr // TILE - hl // TILE + 1
+            ntiles[i] = cnt
+            if cnt == 0:
+                radii[i] = 0
+                bbox[i, 0] = 0
+                bbox[i, 1] = -1
+                bbox[i, 2] = 0
+                bbox[i, 3] = -1
 
 
 @njit(cache=True)
@@ -227,8 +348,8 @@ def radix_argsort_u32(keys):
     return idx
 
 
-@njit(parallel=True, cache=True)
-def bin_tiles(order, bbox, ntiles, width, height, nchunk):
+@njit(parallel=True, cache=True, error_model="numpy")
+def bin_tiles(order, bbox, aux, ntiles, width, height, nchunk):
     """Bin depth-sorted Gaussians into 16x16 tiles, keeping the depth order inside each tile.
 
     ``order``: visible Gaussian ids sorted front to back. Returns ``tile_off (T+1)``, ``gids (P)``
@@ -239,7 +360,9 @@ def bin_tiles(order, bbox, ntiles, width, height, nchunk):
     :func:`reduce_pairs` leaves the per-Gaussian sums in rows ``0..N-1`` in place and only touches
     the Gaussians that span several tiles. ``pbox[j]``: the entry's screen box clipped to its tile,
     in tile-local pixels, packed as bytes ``x0 | x1 << 8 | y0 << 16 | y1 << 24`` (the tile kernels
-    read it in tile-list order instead of fetching the scattered ``bbox`` row).
+    read it in tile-list order instead of fetching the scattered ``bbox`` row). Gaussians with
+    exact coverage (:func:`_exact_tiles`) get only the tiles their row spans reach, and per tile
+    the box of the spans' pixels inside it (an empty box ``1 | 0 | 1 << 16 | 0`` when none).
     """
     tiles_x = (width + TILE - 1) // TILE
     tiles_y = (height + TILE - 1) // TILE
@@ -257,10 +380,18 @@ def bin_tiles(order, bbox, ntiles, width, height, nchunk):
         cb[c] = (nv * c) // nchunk
     counts = np.zeros((nchunk, ntile), np.int64)
     for c in prange(nchunk):
+        spans = np.empty((TILE, 2), np.int64)
         for s in range(cb[c], cb[c + 1]):
             g = order[s]
+            exact = _exact_tiles(bbox, g)
             for ty in range(bbox[g, 2] // TILE, bbox[g, 3] // TILE + 1):
-                for tx in range(bbox[g, 0] // TILE, bbox[g, 1] // TILE + 1):
+                txa = bbox[g, 0] // TILE
+                txb = bbox[g, 1] // TILE
+                if exact:
+                    hl, hr = _band_spans(aux, bbox, g, ty, spans)
+                    txa = hl // TILE
+                    txb = hr // TILE if hl <= hr else txa - 1
+                for tx in range(txa, txb + 1):
                     counts[c, ty * tiles_x + tx] += 1
     tile_off = np.empty(ntile + 1, np.int64)
     cursor = np.empty((nchunk, ntile), np.int64)
@@ -275,6 +406,7 @@ def bin_tiles(order, bbox, ntiles, width, height, nchunk):
     gslot = np.empty(npair, np.int64)
     pbox = np.empty(npair, np.uint32)
     for c in prange(nchunk):
+        spans = np.empty((TILE, 2), np.int64)
         for s in range(cb[c], cb[c + 1]):
             g = order[s]
             k = g
@@ -282,12 +414,39 @@ def bin_tiles(order, bbox, ntiles, width, height, nchunk):
             bx1 = bbox[g, 1]
             by0 = bbox[g, 2]
             by1 = bbox[g, 3]
+            exact = _exact_tiles(bbox, g)
             for ty in range(by0 // TILE, by1 // TILE + 1):
                 ly0 = max(by0 - ty * TILE, 0)
                 ly1 = min(by1 - ty * TILE, TILE - 1)
-                for tx in range(bx0 // TILE, bx1 // TILE + 1):
+                txa = bx0 // TILE
+                txb = bx1 // TILE
+                if exact:
+                    hl, hr = _band_spans(aux, bbox, g, ty, spans)
+                    txa = hl // TILE
+                    txb = hr // TILE if hl <= hr else txa - 1
+                for tx in range(txa, txb + 1):
                     lx0 = max(bx0 - tx * TILE, 0)
                     lx1 = min(bx1 - tx * TILE, TILE - 1)
+                    if exact:
+                        # box of the row spans' pixels inside this tile
+                        ex0 = TILE
+                        ex1 = -1
+                        ey0 = TILE
+                        ey1 = -1
+                        for r in range(TILE):
+                            a = max(spans[r, 0] - tx * TILE, 0)
+                            b = min(spans[r, 1] - tx * TILE, TILE - 1)
+                            if a <= b:
+                                ex0 = min(ex0, a)
+                                ex1 = max(ex1, b)
+                                ey0 = min(ey0, r)
+                                ey1 = max(ey1, r)
+                        if ex1 < 0:
+                            lx0, lx1, ey0, ey1 = 1, 0, 1, 0
+                        else:
+                            lx0, lx1 = ex0, ex1
+                        ly0 = ey0
+                        ly1 = ey1
                     t = ty * tiles_x + tx
                     pos = cursor[c, t]
                     cursor[c, t] = pos + 1

@@ -149,7 +149,7 @@ def _forward_numpy(st: _State, params: np.ndarray, bg: np.ndarray, loss: Optiona
     else:
         order = vis[np.argsort(z, kind="stable")]
     order = np.ascontiguousarray(order, dtype=np.int64)
-    tile_off, gids, xstart, gslot, pbox = K.bin_tiles(order, bbox, ntiles, W, H, _nchunk())
+    tile_off, gids, xstart, gslot, pbox = K.bin_tiles(order, bbox, aux, ntiles, W, H, _nchunk())
     npair = gids.shape[0]
     nrows = N + int(xstart[N])  # per-pair rows: one per Gaussian + extra tiles (bin_tiles)
     xs = np.arange(W, dtype=dt)
