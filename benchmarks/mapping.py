@@ -27,27 +27,22 @@ Prints progress to stderr and ONE JSON object (keyed by experiment) as the last 
 """
 from __future__ import annotations
 
+import argparse
+import json
+import math
 import os
+import resource
+import sys
+import time
+from dataclasses import replace
 
-# numba's OpenMP pool busy-waits after each parallel region by default; on 2 shared cores that steals
-# the CPU from the torch ops between kernels (measured 2-3x slower steps). Must precede the imports.
-os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+import numpy as np
+import torch
 
-import argparse  # noqa: E402
-import json  # noqa: E402
-import math  # noqa: E402
-import resource  # noqa: E402
-import sys  # noqa: E402
-import time  # noqa: E402
-from dataclasses import replace  # noqa: E402
-
-import numpy as np  # noqa: E402
-import torch  # noqa: E402
-
-from vings_core.eval.image import psnr, ssim  # noqa: E402
-from vings_core.geometry import np_se3_exp, rotation_angle_deg  # noqa: E402
-from vings_core.mapping import Mapper, MapperConfig  # noqa: E402
-from vings_core.types import Keyframe  # noqa: E402
+from vings_core.eval.image import psnr, ssim
+from vings_core.geometry import np_se3_exp, rotation_angle_deg
+from vings_core.mapping import Mapper, MapperConfig
+from vings_core.types import Keyframe
 
 FPS = 20.0
 T0_NS = 1_700_000_000_000_000_000
@@ -489,7 +484,10 @@ def main(argv=None) -> int:
     p.add_argument("--tau", type=float, default=40.0)
     p.add_argument("--delta-k", type=int, default=4)
     p.add_argument("--passive-mb", type=float, default=4.0)
-    p.add_argument("--threads", type=int, default=1, help="torch intra-op threads (numba uses its own)")
+    p.add_argument("--threads", type=int, default=0,
+                   help="torch intra-op threads (0: torch's default, as `vings run` and the mapper node "
+                        "run; numba uses its own). The OpenMP environment (OMP_WAIT_POLICY) is left as "
+                        "the caller set it: forcing PASSIVE made mapping 10-40 %% slower here")
     a = p.parse_args(argv)
     a.sc_storage = [float(v) for v in a.sc_storage.split(",") if v]
     a.sc_storage_all = [float(v) for v in a.sc_storage_all.split(",") if v]
@@ -501,13 +499,15 @@ def main(argv=None) -> int:
         a.frontend_frames = min(a.frontend_frames, 60)
         a.street_frames = a.street_frames or 120
         a.max_novel = min(a.max_novel, 8)
-    torch.set_num_threads(a.threads)
+    if a.threads > 0:
+        torch.set_num_threads(a.threads)
     from vings_core.config import load_section
     cfg = load_section(MapperConfig, "mapping", a.params)
     if a.quick:
         cfg = replace(cfg, iters_per_keyframe=min(cfg.iters_per_keyframe, 20))
     exps = [e.strip() for e in a.exp.split(",") if e.strip()]
-    out: dict = {"config": {k: v for k, v in vars(a).items()}, "load_avg_1m_start": os.getloadavg()[0]}
+    out: dict = {"config": {k: v for k, v in vars(a).items()}, "load_avg_1m_start": os.getloadavg()[0],
+                 "torch_threads": torch.get_num_threads(), "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY", "")}
     room = None
     if "room" in exps:
         room, m, _ = exp_room(a, cfg)
