@@ -29,6 +29,23 @@ def _domain() -> int:
     return 100 + os.getpid() % 100
 
 
+def _spin_for(ex, seconds: float) -> None:
+    end = time.monotonic() + seconds
+    while time.monotonic() < end:
+        ex.spin_once(timeout_sec=0.05)
+
+
+def _close_listener(ex, node, saved_env: dict) -> None:
+    """Shut the test's own rclpy node down and restore the environment it ran in."""
+    import rclpy
+
+    ex.shutdown()
+    node.destroy_node()
+    rclpy.shutdown()
+    os.environ.clear()
+    os.environ.update(saved_env)
+
+
 def _procs_with_env(key: str, value: str) -> list[int]:
     pids = []
     for d in Path("/proc").iterdir():
@@ -96,9 +113,7 @@ def test_launch_replay_backpressure_end_to_end(synthetic_mcap, tmp_path):
             ex.spin_once(timeout_sec=0.1)
             assert launcher.poll() is None, f"graph died:\n{launcher.communicate()[0][-3000:]}"
         assert node.count_publishers(T.ODOMETRY_TOPIC) >= 1, "front end never came up"
-        end = time.monotonic() + 1.0
-        while time.monotonic() < end:
-            ex.spin_once(timeout_sec=0.05)
+        _spin_for(ex, 1.0)
         replay = subprocess.Popen(
             [sys.executable, "-m", "vings_ros.cli", "replay", str(synthetic_mcap), "--rate", "0",
              "--wait-for-graph", "--domain-id", str(domain), "--ack-timeout", "120",
@@ -116,19 +131,13 @@ def test_launch_replay_backpressure_end_to_end(synthetic_mcap, tmp_path):
         os.killpg(launcher.pid, signal.SIGINT)
         out, _ = launcher.communicate(timeout=200)
         assert launcher.returncode == 0, f"unclean shutdown (exit {launcher.returncode}):\n{out[-3000:]}"
-        end = time.monotonic() + 2
-        while time.monotonic() < end:
-            ex.spin_once(timeout_sec=0.05)
+        _spin_for(ex, 2)
     finally:
         for p in (replay, launcher):
             if p is not None and p.poll() is None:
                 os.killpg(p.pid, signal.SIGKILL) if p is launcher else p.kill()
                 p.wait()
-        ex.shutdown()
-        node.destroy_node()
-        rclpy.shutdown()
-        os.environ.clear()
-        os.environ.update(saved_env)
+        _close_listener(ex, node, saved_env)
 
     stamps = [int(s) for s in open_source(synthetic_mcap).frame_stamps()]
     assert odom, "no odometry received"
@@ -383,9 +392,7 @@ def test_mapper_killed_and_restarted_resumes_from_checkpoint(synthetic_mcap, tmp
         diag.clear()
         spin_until(lambda: "vings/mapper" in diag and
                    all(pb.get_subscription_count() >= 1 for pb in pubs.values()), 90, "the mapper")
-        end = time.monotonic() + 1.0
-        while time.monotonic() < end:
-            ex.spin_once(timeout_sec=0.05)
+        _spin_for(ex, 1.0)
         return p
 
     try:
@@ -412,11 +419,7 @@ def test_mapper_killed_and_restarted_resumes_from_checkpoint(synthetic_mcap, tmp
             if p.poll() is None:
                 os.killpg(p.pid, signal.SIGKILL)
                 p.wait()
-        ex.shutdown()
-        node.destroy_node()
-        rclpy.shutdown()
-        os.environ.clear()
-        os.environ.update(saved_env)
+        _close_listener(ex, node, saved_env)
         time.sleep(1.0)
         cleanup_fastdds_shm(snap)
     assert set(before) <= set(after), "keyframes from before the crash are missing"

@@ -145,16 +145,20 @@ def np_pose(R: np.ndarray, t: np.ndarray) -> np.ndarray:
     return T
 
 
+def np_project_rotation(R: np.ndarray) -> np.ndarray:
+    """Nearest rotations (Frobenius) of ``(..., 3, 3)`` near-rotation matrices:
+    SVD ``U S V^T -> U diag(1, 1, det(U V^T)) V^T``."""
+    U, _, Vt = np.linalg.svd(np.asarray(R, np.float64))
+    U = U.copy()
+    U[..., :, 2] *= np.sign(np.linalg.det(U @ Vt))[..., None]
+    return U @ Vt
+
+
 def np_pose_compose(A: np.ndarray, B: np.ndarray) -> np.ndarray:
     """``A @ B`` for 4x4 rigid transforms with the rotation block projected back onto SO(3) (SVD),
     so chains of increments do not drift away from orthonormality (float64)."""
     T = np.asarray(A, np.float64) @ np.asarray(B, np.float64)
-    U, _, Vt = np.linalg.svd(T[:3, :3])
-    R = U @ Vt
-    if np.linalg.det(R) < 0:
-        U[:, -1] *= -1
-        R = U @ Vt
-    T[:3, :3] = R
+    T[:3, :3] = np_project_rotation(T[:3, :3])
     T[3] = (0.0, 0.0, 0.0, 1.0)
     return T
 

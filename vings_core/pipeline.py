@@ -503,15 +503,11 @@ class SlamRunner:
     def trajectory(self) -> Trajectory:
         """Every tracked frame's cam0 ``T_wc``."""
         if self.frontend is None:
-            st = sorted(self._gt_poses)
-            return Trajectory(np.array(st, np.int64), np.stack([self._gt_poses[s] for s in st]))
+            return Trajectory.from_poses(self._gt_poses)
         return self.frontend.trajectory(states=("tracking",))
 
     def keyframe_trajectory(self) -> Trajectory:
-        poses = self.mapper.keyframe_poses()
-        st = sorted(poses)
-        return Trajectory(np.array(st, np.int64),
-                          np.stack([poses[s] for s in st]) if st else np.zeros((0, 4, 4)))
+        return Trajectory.from_poses(self.mapper.keyframe_poses())
 
     def _finish(self, n_frames: int, wall: float) -> dict:
         traj = self.trajectory()

@@ -200,6 +200,13 @@ class Trajectory:
             raise ValueError(f"trajectory has {len(self.stamps_ns)} stamps but "
                              f"{len(self.poses)} poses")
 
+    @staticmethod
+    def from_poses(poses: dict[int, np.ndarray]) -> "Trajectory":
+        """The ``{stamp_ns: 4x4 pose}`` mapping in stamp order (empty mapping: empty trajectory)."""
+        st = sorted(int(s) for s in poses)
+        return Trajectory(np.array(st, np.int64),
+                          np.stack([poses[s] for s in st]) if st else np.zeros((0, 4, 4)))
+
     def __len__(self) -> int:
         return len(self.stamps_ns)
 

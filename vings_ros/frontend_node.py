@@ -195,9 +195,7 @@ class FrontendNode(Node):
         moved = self.link.outgoing(self.frontend)
         if not moved:
             return
-        st = sorted(moved)
-        t = Trajectory(np.array(st, np.int64), np.stack([moved[s] for s in st]))
-        self.pub_kf_path.publish(trajectory_to_path(t, self.ncfg.world_frame))
+        self.pub_kf_path.publish(trajectory_to_path(Trajectory.from_poses(moved), self.ncfg.world_frame))
 
     def _publish_path(self) -> None:
         traj = self.frontend.trajectory(states=("tracking",))

@@ -170,10 +170,7 @@ class MapperNode(Node):
         self.rate.tick()
         stamp = int(kf.stamp_ns)
         if corrections:
-            st = sorted(corrections)
-            self.pub_corr.publish(trajectory_to_path(
-                Trajectory(np.array(st, np.int64), np.stack([corrections[s] for s in st])),
-                self.ncfg.world_frame))
+            self.pub_corr.publish(trajectory_to_path(Trajectory.from_poses(corrections), self.ncfg.world_frame))
         self._publish_refined(stamp)
         if self.ncfg.render_every_keyframes and self.keyframes_mapped % self.ncfg.render_every_keyframes == 0:
             self._publish_render(stamp, kf)
@@ -210,9 +207,7 @@ class MapperNode(Node):
                                f"{self.mapper.num_gaussians} Gaussians, {time.perf_counter() - t0:.2f} s")
 
     def _kf_traj(self) -> Trajectory:
-        poses = self.mapper.keyframe_poses()
-        st = sorted(poses)
-        return Trajectory(np.array(st, np.int64), np.stack([poses[s] for s in st]))
+        return Trajectory.from_poses(self.mapper.keyframe_poses())
 
     def _publish_refined(self, stamp: int) -> None:
         self.pub_refined.publish(trajectory_to_path(self._kf_traj(), self.ncfg.world_frame))

@@ -25,7 +25,7 @@ from typing import Optional, Sequence
 import numpy as np
 
 from ..errors import InputError
-from ..geometry import np_so3_exp, np_so3_log
+from ..geometry import np_project_rotation, np_so3_exp, np_so3_log
 from ..types import Trajectory
 from .align import apply_sim3, umeyama
 
@@ -60,16 +60,8 @@ def _check_sorted(traj: Trajectory, name: str) -> Trajectory:
                          f"(|R^T R - I| up to {dev:.3g})")
     if dev > 1e-12:  # e.g. KITTI poses printed with few digits: project onto SO(3)
         traj = Trajectory(traj.stamps_ns, traj.poses.copy())
-        traj.poses[:, :3, :3] = _project_so3(R)
+        traj.poses[:, :3, :3] = np_project_rotation(R)
     return traj
-
-
-def _project_so3(R: np.ndarray) -> np.ndarray:
-    """Nearest rotations (Frobenius) of ``(N, 3, 3)`` near-rotation matrices."""
-    U, _, Vt = np.linalg.svd(R)
-    d = np.sign(np.linalg.det(U @ Vt))
-    U[:, :, 2] *= d[:, None]
-    return U @ Vt
 
 
 def _angle_deg(R: np.ndarray) -> np.ndarray:

@@ -5,6 +5,7 @@ Images are (H, W, 3) float in [0, 1]; depth (H, W) metric z-depth (m, 0 = invali
 """
 from __future__ import annotations
 
+import functools
 import math
 
 import numpy as np
@@ -22,6 +23,15 @@ def _gauss_window(size: int = 11, sigma: float = 1.5, dtype=torch.float32) -> to
     return g
 
 
+def _ssim_from_moments(mu_x, mu_y, xx, yy, xy) -> torch.Tensor:
+    """SSIM per channel and pixel from the blurred moments ``E[x], E[y], E[x^2], E[y^2], E[xy]``."""
+    sxx = xx - mu_x ** 2
+    syy = yy - mu_y ** 2
+    sxy = xy - mu_x * mu_y
+    C1, C2 = 0.01 ** 2, 0.03 ** 2
+    return ((2 * mu_x * mu_y + C1) * (2 * sxy + C2)) / ((mu_x ** 2 + mu_y ** 2 + C1) * (sxx + syy + C2))
+
+
 def ssim_map(a: torch.Tensor, b: torch.Tensor, size: int = 11, sigma: float = 1.5) -> torch.Tensor:
     """Differentiable SSIM map (H, W) of (H, W, C) images in [0, 1] (Gaussian window, as 3DGS).
 
@@ -36,13 +46,7 @@ def ssim_map(a: torch.Tensor, b: torch.Tensor, size: int = 11, sigma: float = 1.
     gh5 = g.reshape(1, 1, 1, size).expand(5 * C, 1, 1, size)
     gv5 = g.reshape(1, 1, size, 1).expand(5 * C, 1, size, 1)
     f = F.conv2d(F.conv2d(stacked, gh5, padding=(0, p), groups=5 * C), gv5, padding=(p, 0), groups=5 * C)
-    mu_x, mu_y, xx, yy, xy = f.split(C, 1)
-    sxx = xx - mu_x ** 2
-    syy = yy - mu_y ** 2
-    sxy = xy - mu_x * mu_y
-    C1, C2 = 0.01 ** 2, 0.03 ** 2
-    s = ((2 * mu_x * mu_y + C1) * (2 * sxy + C2)) / ((mu_x ** 2 + mu_y ** 2 + C1) * (sxx + syy + C2))
-    return s[0].mean(0)
+    return _ssim_from_moments(*f.split(C, 1))[0].mean(0)
 
 
 @njit(parallel=True, cache=True)
@@ -84,31 +88,27 @@ def sep_blur(x: torch.Tensor, g: torch.Tensor) -> torch.Tensor:
     return _SepBlur.apply(x, g)
 
 
+def _blur_numpy(x: torch.Tensor, g: torch.Tensor) -> torch.Tensor:
+    x = x.detach().contiguous()
+    out = torch.empty_like(x)
+    _sep_blur_kernel(x.numpy(), g.numpy(), out.numpy())
+    return out
+
+
 class _SepBlur(torch.autograd.Function):
     @staticmethod
     def forward(ctx, x, g):  # noqa: D401
         ctx.g = g
-        xx = x.detach().contiguous()
-        out = torch.empty_like(xx)
-        _sep_blur_kernel(xx.numpy(), g.numpy(), out.numpy())
-        return out
+        return _blur_numpy(x, g)
 
     @staticmethod
     def backward(ctx, grad):
-        gg = grad.contiguous()
-        out = torch.empty_like(gg)
-        _sep_blur_kernel(gg.numpy(), ctx.g.numpy(), out.numpy())
-        return out, None
+        return _blur_numpy(grad, ctx.g), None   # self-adjoint: the backward is the same blur
 
 
-_WINDOWS: dict = {}
-
-
+@functools.lru_cache(maxsize=8)
 def _window(size: int, sigma: float) -> torch.Tensor:
-    key = (size, sigma)
-    if key not in _WINDOWS:
-        _WINDOWS[key] = _gauss_window(size, sigma, torch.float32).contiguous()
-    return _WINDOWS[key]
+    return _gauss_window(size, sigma, torch.float32).contiguous()
 
 
 def ssim_target_stats(b: torch.Tensor, size: int = 11, sigma: float = 1.5) -> tuple[torch.Tensor, torch.Tensor]:
@@ -132,13 +132,7 @@ def ssim_map_fast(a: torch.Tensor, b: torch.Tensor, target_stats: tuple | None =
     y = b.to(torch.float32).permute(2, 0, 1)
     mu_y, yy = target_stats if target_stats is not None else ssim_target_stats(b, size, sigma)
     f = sep_blur(torch.cat([x, x * x, x * y], 0).contiguous(), _window(size, sigma))
-    mu_x, xx, xy = f[:C], f[C:2 * C], f[2 * C:]
-    sxx = xx - mu_x ** 2
-    syy = yy - mu_y ** 2
-    sxy = xy - mu_x * mu_y
-    C1, C2 = 0.01 ** 2, 0.03 ** 2
-    s = ((2 * mu_x * mu_y + C1) * (2 * sxy + C2)) / ((mu_x ** 2 + mu_y ** 2 + C1) * (sxx + syy + C2))
-    return s.mean(0)
+    return _ssim_from_moments(f[:C], mu_y, f[C:2 * C], yy, f[2 * C:]).mean(0)
 
 
 def ssim_reference(a: torch.Tensor, b: torch.Tensor, size: int = 11, sigma: float = 1.5) -> torch.Tensor:

@@ -29,7 +29,7 @@ import torch
 
 from ..config import config_from_dict
 from ..errors import InputError
-from ..geometry import pose_inverse, rotmat_to_quat, se3_exp
+from ..geometry import np_project_rotation, pose_inverse, rotmat_to_quat, se3_exp
 from ..render import rasterize_2dgs
 from ..types import CameraModel, Keyframe
 from ..util import atomic_write
@@ -824,7 +824,6 @@ def _check_pose(T, what: str) -> np.ndarray:
         raise InputError(f"{what}: not a rigid pose (rotation block deviates from orthonormal by {dev:.2g})")
     if dev > 1e-9:
         # round-off of composed increments (e.g. many pose corrections): project onto SO(3)
-        U, _, Vt = np.linalg.svd(R)
         T = T.copy()
-        T[:3, :3] = U @ np.diag([1.0, 1.0, float(np.sign(np.linalg.det(U @ Vt)))]) @ Vt
+        T[:3, :3] = np_project_rotation(R)
     return T

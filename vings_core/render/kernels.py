@@ -179,6 +179,19 @@ def _band_spans(aux, bbox, g, ty, spans):
     return hl, hr
 
 
+@njit(cache=True, inline="always")
+def _band_tiles(aux, bbox, g, ty, exact, spans):
+    """Inclusive range ``(txa, txb)`` of tile columns Gaussian ``g`` touches in tile row ``ty``
+    (``txb < txa``: none): its box's, or with ``exact`` those its row spans reach (the spans are
+    left in ``spans`` for the caller)."""
+    if not exact:
+        return bbox[g, 0] // TILE, bbox[g, 1] // TILE
+    hl, hr = _band_spans(aux, bbox, g, ty, spans)
+    if hl > hr:
+        return 0, -1
+    return hl // TILE, hr // TILE
+
+
 @njit(parallel=True, cache=True, error_model="numpy")
 def preprocess(params, cst, width, height, aux, bbox, radii, ntiles):
     """Cull, and compute per Gaussian its pixel bounding box and tile count.
@@ -310,9 +323,8 @@ only the tiles its row spans reach, :func:`_row_span`). Exact: the 3D part is th
             spans = np.empty((TILE, 2), np.int64)
             cnt = 0
             for ty in range(y0 // TILE, y1 // TILE + 1):
-                hl, hr = _band_spans(aux, bbox, i, ty, spans)
-                if hl <= hr:
-                    cnt += hr // TILE - hl // TILE + 1
+                txa, txb = _band_tiles(aux, bbox, i, ty, True, spans)
+                cnt += txb - txa + 1
             ntiles[i] = cnt
             if cnt == 0:
                 radii[i] = 0
@@ -385,12 +397,7 @@ def bin_tiles(order, bbox, aux, ntiles, width, height, nchunk):
             g = order[s]
             exact = _exact_tiles(bbox, g)
             for ty in range(bbox[g, 2] // TILE, bbox[g, 3] // TILE + 1):
-                txa = bbox[g, 0] // TILE
-                txb = bbox[g, 1] // TILE
-                if exact:
-                    hl, hr = _band_spans(aux, bbox, g, ty, spans)
-                    txa = hl // TILE
-                    txb = hr // TILE if hl <= hr else txa - 1
+                txa, txb = _band_tiles(aux, bbox, g, ty, exact, spans)
                 for tx in range(txa, txb + 1):
                     counts[c, ty * tiles_x + tx] += 1
     tile_off = np.empty(ntile + 1, np.int64)
@@ -418,12 +425,7 @@ def bin_tiles(order, bbox, aux, ntiles, width, height, nchunk):
             for ty in range(by0 // TILE, by1 // TILE + 1):
                 ly0 = max(by0 - ty * TILE, 0)
                 ly1 = min(by1 - ty * TILE, TILE - 1)
-                txa = bx0 // TILE
-                txb = bx1 // TILE
-                if exact:
-                    hl, hr = _band_spans(aux, bbox, g, ty, spans)
-                    txa = hl // TILE
-                    txb = hr // TILE if hl <= hr else txa - 1
+                txa, txb = _band_tiles(aux, bbox, g, ty, exact, spans)
                 for tx in range(txa, txb + 1):
                     lx0 = max(bx0 - tx * TILE, 0)
                     lx1 = min(bx1 - tx * TILE, TILE - 1)

@@ -175,8 +175,8 @@ def _forward_numpy(st: _State, params: np.ndarray, bg: np.ndarray, loss: Optiona
                         out_last, out_count, out_d1, out_d2, pair_stats, tile_evals)
     K.reduce_pairs(pair_stats, np.empty(0, np.uint8), xstart, ntiles)
     scores = pair_stats[:N]
-    st.params, st.aux, st.bbox, st.bg = params, aux, bbox, bg
-    st.order, st.tile_off, st.gids, st.xstart, st.gslot = order, tile_off, gids, xstart, gslot
+    st.params, st.aux, st.bg = params, aux, bg
+    st.tile_off, st.gids, st.xstart, st.gslot = tile_off, gids, xstart, gslot
     st.pbox, st.ntiles, st.nrows = pbox, ntiles, nrows
     st.T_final, st.last, st.d1, st.d2 = out_T, out_last, out_d1, out_d2
     st.stats = {"pairs_evaluated": int(tile_evals.sum()), "tile_pairs": int(npair),
