@@ -610,15 +610,26 @@ def room_two_views():
 PERTURB = np.array([0.02, -0.015, 0.01, 0.01, -0.008, 0.006])   # ~3.5 cm / 0.8 deg at the camera
 
 
-def test_single_pose_refinement_corrects_a_pose_against_a_correct_map(room_two_views):
+def _scaled(f, cam, scale: float):
+    """Keyframe ``f`` in a world ``scale`` times larger (pose translation and depth)."""
+    T = f.T_wc.numpy().copy()
+    T[:3, 3] *= scale
+    return _kf(f.stamp_ns, T, f.depth.numpy() * scale, cam, image=f.image)
+
+
+@pytest.mark.parametrize("scale", [1.0, 6.0])
+def test_single_pose_refinement_corrects_a_pose_against_a_correct_map(room_two_views, scale):
+    """At scale 6 the same scene and perturbation are 6x larger (a monocular map has no metric
+    scale): translation steps follow the median keyframe depth, so the correction is as good."""
     cam, (f0, f1) = room_two_views
+    f0, f1 = _scaled(f0, cam, scale), _scaled(f1, cam, scale)
     m = Mapper(MapperConfig(points_per_keyframe=6000, iters_per_keyframe=20, sample_ratio=1.0,
-                            refine_lr_trans=4e-3, refine_lr_rot=2e-3))
+                            refine_lr_trans_rel=1.5e-3, refine_lr_rot=2e-3))
     for f in (f0, f1):
         m.add_keyframe(f)
         m.train()
     T_gt = f1.T_wc.numpy().copy()
-    T_bad = np_se3_exp(PERTURB) @ T_gt
+    T_bad = np_se3_exp(PERTURB * np.array([scale] * 3 + [1.0] * 3)) @ T_gt
     m.set_keyframe_poses({f1.stamp_ns: T_bad}, move_gaussians=False)   # map right, pose wrong
     e0 = _pose_err(T_bad, T_gt)
     poses = m.refine_poses(40, mode="single")
@@ -630,7 +641,7 @@ def test_single_pose_refinement_corrects_a_pose_against_a_correct_map(room_two_v
 def test_multi_pose_refinement_corrects_a_keyframe_and_its_gaussians(room_two_views):
     cam, (f0, f1) = room_two_views
     m = Mapper(MapperConfig(points_per_keyframe=6000, iters_per_keyframe=20, sample_ratio=1.0,
-                            refine_lr_trans=4e-3, refine_lr_rot=2e-3))
+                            refine_lr_trans_rel=1.5e-3, refine_lr_rot=2e-3))
     m.add_keyframe(f0)
     m.train()
     T_gt = f1.T_wc.numpy().copy()

@@ -86,7 +86,9 @@ class MapperConfig:
     # ---- single-to-multi pose refinement
     refine_mode: str = "multi"         # "none" | "single" (rendered pose only) | "multi"
     refine_iters: int = 10             # per call of refine_poses()
-    refine_lr_trans: float = 1.0e-3    # m per Adam step
+    refine_lr_trans_rel: float = 3.5e-4  # translation per Adam step, as a fraction of the window's
+                                       # median keyframe depth (1 mm at the room's 2.9 m): scale-free,
+                                       # so a monocular map of any scale takes the same pixel-size steps
     refine_lr_rot: float = 2.0e-3      # rad per Adam step
     refine_lr_decay: bool = True       # step t of a keyframe's refinement uses lr / sqrt(t)
     refine_min_pixels: float = 50.0    # a keyframe needs this much contribution to be refined

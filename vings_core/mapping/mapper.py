@@ -695,6 +695,16 @@ class Mapper:
         D = np.stack([deltas[int(s)] for s in owners])
         self.gm.apply_rigid(torch.from_numpy(D[i[rows]]), torch.from_numpy(rows).to(self.device))
 
+    def _depth_scale(self) -> float:
+        """Median over the window keyframes of their median valid depth (scene units): the length
+        scale of pose-refinement translation steps (1.0 when no keyframe has depth)."""
+        meds = []
+        for kf in self.window:
+            d = kf.depth[kf.valid & (kf.depth > 0)]
+            if d.numel():
+                meds.append(float(d.median()))
+        return float(np.median(meds)) if meds else 1.0
+
     def _refine(self, mode: str, iters: int) -> None:
         cfg = self.cfg
         gm = self.gm
@@ -718,7 +728,8 @@ class Mapper:
         v = torch.stack([torch.from_numpy(a[1]) if a is not None else torch.zeros(6, dtype=torch.float64) for a in st]) \
             if U else torch.zeros(0, 6, dtype=torch.float64)
         steps = torch.tensor([int(a[2]) if a is not None else 0 for a in st], dtype=torch.int64)
-        lr = torch.tensor([cfg.refine_lr_trans] * 3 + [cfg.refine_lr_rot] * 3, dtype=torch.float64)
+        lr_t = cfg.refine_lr_trans_rel * self._depth_scale()
+        lr = torch.tensor([lr_t] * 3 + [cfg.refine_lr_rot] * 3, dtype=torch.float64)
         fixed = (owners == first) if first is not None else torch.zeros(U, dtype=torch.bool)
         b1, b2, eps = 0.9, 0.999, 1e-12
         vs = self._pose_v
