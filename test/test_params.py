@@ -44,6 +44,15 @@ def test_invalid_values_are_named(tmp_path):
         load_section(NodeConfig, "ros", p)
 
 
+def test_replaced_parameter_names_its_successor(tmp_path):
+    from vings_core.mapping import MapperConfig
+    p = tmp_path / "p.yaml"
+    p.write_text(yaml.safe_dump({"/**": {"ros__parameters": {"mapping": {"refine_lr_trans": 1e-3}}}}))
+    with pytest.raises(ConfigError, match=r"p.yaml: mapping: parameter 'refine_lr_trans' was replaced by "
+                                          r"'refine_lr_trans_rel'"):
+        load_section(MapperConfig, "mapping", p)
+
+
 def test_input_queue_policies():
     from vings_ros.node_common import InputQueue
     q = InputQueue("keep_newest")

@@ -76,6 +76,9 @@ def config_from_dict(cls: Type[C], values: dict, where: str = "params") -> C:
     kwargs: dict[str, Any] = {}
     for key, val in (values or {}).items():
         if key not in fields:
+            renamed = getattr(cls, "RENAMED", {}).get(key)
+            if renamed:
+                raise ConfigError(f"{where}: parameter {key!r} was replaced by {renamed}")
             raise ConfigError(f"{where}: unknown parameter {key!r}; known: {', '.join(sorted(fields))}")
         kwargs[key] = _coerce(hints[key], val, f"{where}.{key}")
     try:

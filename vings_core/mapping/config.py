@@ -11,6 +11,7 @@ See docs/mapping.md.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import ClassVar
 
 
 @dataclass
@@ -95,6 +96,11 @@ class MapperConfig:
     refine_fix_first: bool = True      # gauge: the first keyframe's pose is held fixed
 
     seed: int = 0
+
+    # parameters of earlier versions, with what replaced them (the params loader names it)
+    RENAMED: ClassVar[dict] = {
+        "refine_lr_trans": "'refine_lr_trans_rel', a fraction of the window's median keyframe depth "
+                           "per step instead of metres (3.5e-4 = 1 mm at 2.9 m)"}
 
     def validate(self) -> None:
         if not 0 <= self.sh_degree <= 3:
