@@ -661,6 +661,23 @@ def test_multi_pose_refinement_corrects_a_keyframe_and_its_gaussians(room_two_vi
     assert torch.allclose(m.gm.means[own].double(), exp, atol=1e-4)
 
 
+def test_pose_refinement_needs_enough_contribution(room_two_views):
+    """refine_min_pixels gates the update: a keyframe whose Gaussians contribute less than it to
+    the render (here: any, with an impossible threshold) keeps its pose and its Gaussians; with the
+    default it is corrected (previous test)."""
+    cam, (f0, f1) = room_two_views
+    m = Mapper(MapperConfig(points_per_keyframe=6000, iters_per_keyframe=20, sample_ratio=1.0,
+                            refine_min_pixels=1e9))
+    m.add_keyframe(f0)
+    m.train()
+    T_bad = np_se3_exp(PERTURB) @ f1.T_wc.numpy()
+    m.add_keyframe(_kf(f1.stamp_ns, T_bad, f1.depth, cam, image=f1.image))
+    before = m.gm.means.clone()
+    poses = m.refine_poses(10, mode="multi")
+    assert np.array_equal(poses[f1.stamp_ns], T_bad)
+    assert torch.equal(m.gm.means, before)
+
+
 @pytest.fixture(scope="module")
 def room_small():
     """Eight 64x40 views of the synthetic room with ground-truth depth, as Keyframes."""

@@ -759,13 +759,17 @@ class Mapper:
             terms.pop("l1_map", None)
             loss.backward()
             g = x.grad.detach().clone()
+            # a pose is updated only when the render shows enough of what constrains it
+            # (refine_min_pixels, in pixel weights sum alpha T): the rendered keyframe needs that
+            # much map in view; in multi mode another keyframe needs that much contribution from
+            # its own Gaussians, so one seen through a few pixels at the edge of the view does not
+            # step on their noise
+            contrib = out.contribution.detach().to(torch.float64)
+            vis_owner = torch.zeros(U, dtype=torch.bool)
             if mode == "multi":
-                vis_owner = torch.zeros(U, dtype=torch.bool)
-                vis_owner[inv[out.radii > 0]] = True
-                vis_owner[r] = True
-            else:
-                vis_owner = torch.zeros(U, dtype=torch.bool)
-                vis_owner[r] = True
+                per_owner = torch.zeros(U, dtype=torch.float64).index_add_(0, inv, contrib)
+                vis_owner = per_owner >= cfg.refine_min_pixels
+            vis_owner[r] = float(contrib.sum()) >= cfg.refine_min_pixels
             upd = vis_owner & ~fixed & torch.isfinite(g).all(1)
             if not upd.any():
                 continue
