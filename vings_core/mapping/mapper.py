@@ -746,9 +746,11 @@ class Mapper:
             T_cw = pose_inverse(T_own[r] @ D[r])
             if mode == "multi":
                 Wd = (T_own @ D @ T_own_inv)                  # world-frame motion of each owner's Gaussians
-                Dg = Wd.to(torch.float32)[inv]
+                # index_select, not Wd[inv]: the backward of advanced indexing (index_put_ with
+                # accumulate) sums in a thread-dependent order on the CPU, index_select's does not
+                Dg = torch.index_select(Wd.to(torch.float32), 0, inv)
                 means = (Dg[:, :3, :3] @ gm.means[:, :, None])[:, :, 0] + Dg[:, :3, 3]
-                qd = rotmat_to_quat(Wd[:, :3, :3]).to(torch.float32)[inv]
+                qd = torch.index_select(rotmat_to_quat(Wd[:, :3, :3]).to(torch.float32), 0, inv)
                 quats = quat_multiply(qd, gm.quats)
                 out = self._rasterize(gm, T_cw.to(torch.float32), kf.camera, sample_ratio=1.0,
                                       means=means, quats=quats)
