@@ -767,10 +767,11 @@ class Mapper:
             # its own Gaussians, so one seen through a few pixels at the edge of the view does not
             # step on their noise
             contrib = out.contribution.detach().to(torch.float64)
-            vis_owner = torch.zeros(U, dtype=torch.bool)
             if mode == "multi":
                 per_owner = torch.zeros(U, dtype=torch.float64).index_add_(0, inv, contrib)
                 vis_owner = per_owner >= cfg.refine_min_pixels
+            else:
+                vis_owner = torch.zeros(U, dtype=torch.bool)
             vis_owner[r] = float(contrib.sum()) >= cfg.refine_min_pixels
             upd = vis_owner & ~fixed & torch.isfinite(g).all(1)
             if not upd.any():
