@@ -427,6 +427,22 @@ def test_sampled_backward_equals_full_backward_of_restricted_loss(cam, ratio):
         assert torch.allclose(a.double(), b.double(), rtol=1e-4, atol=1e-5 * float(b.abs().max())), name
 
 
+@pytest.mark.parametrize("cam", [CAM_ODD, CAM_PAR], ids=["partial-tiles", "thread-pool"])
+def test_backward_evaluates_exactly_the_composited_pairs(cam):
+    """The forward records, per (tile, Gaussian) pair, the pixels it was composited into; the
+    full backward evaluates exactly those pixel-Gaussian pairs (none outside a splat's cut-off or
+    behind a pixel's early termination), and the sampled one exactly those at selected pixels."""
+    g = _scene(400, seed=31)
+    up = _upstream_cam(cam, seed=4)
+    _, out = _grads_cam(g, cam, up, sample_ratio=1.0)
+    assert out.stats["bwd_pairs_evaluated"] == int(out.n_contrib.sum()) > 0
+    assert out.stats["pairs_evaluated"] > out.stats["bwd_pairs_evaluated"]   # the forward tries more
+    score = torch.rand(cam.height, cam.width, generator=torch.Generator().manual_seed(5), dtype=F64)
+    mask = select_sample_pixels(score, 0.5)
+    _, out_s = _grads_cam(g, cam, up, sample_ratio=0.5, loss_map=score)
+    assert out_s.stats["bwd_pairs_evaluated"] == int((out_s.n_contrib * mask).sum())
+
+
 def _large_slanted_scene(n: int, seed: int):
     """Large surfels at grazing angles (thin slanted ellipses whose boxes span many tiles), some
     close to the camera (hyperbolic footprints through the camera plane get the whole image as

@@ -485,11 +485,13 @@ def reduce_pairs(buf, used, xstart, ntiles):
 @njit(parallel=True, cache=True, error_model="numpy")
 def forward_tiles(params, aux, pbox, tile_off, gids, gslot, cst, width, height, xs, ys, bg, loss,
                   has_loss, out_rgb, out_depth, out_normal, out_alpha, out_dist, out_T, out_last,
-                  out_count, out_d1, out_d2, pair_stats, tile_evals):
+                  out_count, out_d1, out_d2, pair_stats, pmask, tile_evals):
     """Front-to-back compositing of every tile. Fills the per-pixel outputs, the saved state of
     the backward pass (final ``T``, number of tile-list entries up to the last contributor,
-    distortion accumulators ``sum w m`` and ``sum w m^2``), per-pair stats and per-tile counts of
-    evaluated pixel-Gaussian pairs."""
+    distortion accumulators ``sum w m`` and ``sum w m^2``, and ``pmask (P, 4)``: per tile-list
+    entry the 256-bit mask of the tile's pixels it was composited into, bit ``p`` of word
+    ``p >> 6`` for tile pixel ``p = 16 ly + lx``), per-pair stats and per-tile counts of evaluated
+    pixel-Gaussian pairs."""
     tiles_x = (width + TILE - 1) // TILE
     tiles_y = (height + TILE - 1) // TILE
     zero = cst[_ZERO]
@@ -515,6 +517,8 @@ def forward_tiles(params, aux, pbox, tile_off, gids, gslot, cst, width, height, 
         last = np.zeros(TILE_PIX, np.int32)
         pcount = np.zeros(TILE_PIX, np.int32)
         done = np.zeros(TILE_PIX, np.uint8)
+        fm = np.zeros(4, np.uint64)
+        bit1 = np.uint64(1)
         ndone = 0
         evals = 0
         start = tile_off[t]
@@ -568,6 +572,8 @@ def forward_tiles(params, aux, pbox, tile_off, gids, gslot, cst, width, height, 
             sw = zero
             se = zero
             cnt = 0
+            for w4 in range(4):
+                fm[w4] = 0
             for y in range(y0, y1 + 1):
                 dy = ys[y] - my
                 dy2 = dy * dy
@@ -629,6 +635,7 @@ def forward_tiles(params, aux, pbox, tile_off, gids, gslot, cst, width, height, 
                     T[p] = nt
                     last[p] = j - start + 1
                     pcount[p] += 1
+                    fm[p >> 6] |= bit1 << np.uint64(p & 63)
                     sw += w
                     cnt += 1
                     if has_loss:
@@ -637,12 +644,16 @@ def forward_tiles(params, aux, pbox, tile_off, gids, gslot, cst, width, height, 
             pair_stats[q, 0] = sw
             pair_stats[q, 1] = cnt
             pair_stats[q, 2] = se
+            for w4 in range(4):
+                pmask[j, w4] = fm[w4]
             j += 1
         while j < end:  # Gaussians behind the point where every pixel terminated
             q = gslot[j]
             pair_stats[q, 0] = zero
             pair_stats[q, 1] = zero
             pair_stats[q, 2] = zero
+            for w4 in range(4):
+                pmask[j, w4] = 0
             j += 1
         tile_evals[t] = evals
         for y in range(py0, py1 + 1):
@@ -712,27 +723,8 @@ def select_pixels(score, ratio, out_sel):
                 out_sel[py0 + q // tw, px0 + q % tw] = 1
 
 
-# rows of a 64-bit word of a 16x16 pixel mask (4 rows of 16 bits): _ROWS_FROM[a] = rows >= a,
-# _ROWS_BELOW[b] = rows < b (a, b in 0..4)
-_ROWS_FROM = np.array([0xFFFFFFFFFFFFFFFF, 0xFFFFFFFFFFFF0000, 0xFFFFFFFF00000000,
-                       0xFFFF000000000000, 0], dtype=np.uint64)
-_ROWS_BELOW = np.array([0, 0x000000000000FFFF, 0x00000000FFFFFFFF, 0x0000FFFFFFFFFFFF,
-                        0xFFFFFFFFFFFFFFFF], dtype=np.uint64)
-_REP_ROWS = np.uint64(0x0001000100010001)
-
-
-@njit(cache=True, inline="always")
-def _box_word(cols, w, ly0, ly1):
-    """Bits of word ``w`` (rows ``4w .. 4w+3``, bit ``16 (y - 4w) + x``) of a 16x16 pixel mask
-    inside rows ``[ly0, ly1]``, for the column pattern ``cols`` (the box's columns repeated in the
-    four rows). Branch-free."""
-    a = min(max(ly0 - 4 * w, 0), 4)
-    b = min(max(ly1 - 4 * w + 1, 0), 4)
-    return cols & _ROWS_FROM[a] & _ROWS_BELOW[b]
-
-
 @njit(parallel=True, cache=True, error_model="numpy")
-def backward_tiles(params, aux, pbox, tile_off, gids, gslot, cst, width, height, xs, ys, bg, T_final,
+def backward_tiles(params, aux, pmask, tile_off, gids, gslot, cst, width, height, xs, ys, bg, T_final,
                    last, d1, d2, g_rgb, g_depth, g_normal, g_alpha, g_dist, sel, pair_grad,
                    pair_used, tile_evals):
     """Back-to-front pass over the selected pixels (``sel != 0``) of every tile.
@@ -745,11 +737,10 @@ def backward_tiles(params, aux, pbox, tile_off, gids, gslot, cst, width, height,
     expressions. ``pair_used[gslot[j]]`` is set to 1 when the pair touched a selected pixel, else
     to 0 and its ``pair_grad`` row is left unwritten (:func:`reduce_pairs` skips it).
 
-    Work is proportional to the selected pixels: the tile keeps a 256-bit mask of its *live*
-    pixels (selected, and not behind their last contributor: pixel ``p`` joins when the pass
-    reaches entry ``last[p] - 1``), each pair ANDs it with its box mask, skips at once when
-    nothing is left (no record loaded) and otherwise visits exactly the set bits. The records of
-    the pair a few entries ahead, and its gradient row, are prefetched, so the scattered
+    Work is proportional to the selected pixels: each pair visits exactly the set bits of its
+    forward mask ``pmask[j]`` (the pixels it was composited into) ANDed with the tile's selected
+    pixels, and a pair left with none is skipped at once (no record loaded). The records of the
+    pair a few entries ahead, and its gradient row, are prefetched, so the scattered
     per-Gaussian memory does not stall every pair.
     """
     tiles_x = (width + TILE - 1) // TILE
@@ -758,7 +749,6 @@ def backward_tiles(params, aux, pbox, tile_off, gids, gslot, cst, width, height,
     one = cst[_ONE]
     half = cst[_HALF]
     two = cst[_TWO]
-    amin = cst[_AMIN]
     amax = cst[_AMAX]
     near = cst[_NEAR]
     da = cst[_DA]
@@ -774,24 +764,14 @@ def backward_tiles(params, aux, pbox, tile_off, gids, gslot, cst, width, height,
         start = tile_off[t]
         end = tile_off[t + 1]
         # per-pixel state: T, R (= sum_{k>i} w_k g_k + T_N bg.dC), loss grads, totals
-        st = np.zeros((TILE_PIX, 16), params.dtype)
-        plast = np.zeros(TILE_PIX, np.int64)
-        spix = np.empty(TILE_PIX, np.int64)
-        nsel = 0
-        maxlast = 0
+        st = np.empty((TILE_PIX, 16), params.dtype)
+        smask = np.zeros(4, np.uint64)
         for y in range(py0, py1 + 1):
             for x in range(px0, px1 + 1):
-                if sel[y, x] == 0:
-                    continue
-                lp = last[y, x]
-                if lp == 0:
-                    continue  # nothing composited here
+                if sel[y, x] == 0 or last[y, x] == 0:
+                    continue  # not selected, or nothing composited here
                 p = (y - py0) * TILE + (x - px0)
-                spix[nsel] = p
-                nsel += 1
-                plast[p] = lp
-                if lp > maxlast:
-                    maxlast = lp
+                smask[p >> 6] |= bit1 << np.uint64(p & 63)
                 tf = T_final[y, x]
                 st[p, 0] = tf
                 st[p, 1] = tf * (bg[0] * g_rgb[y, x, 0] + bg[1] * g_rgb[y, x, 1]
@@ -808,23 +788,13 @@ def backward_tiles(params, aux, pbox, tile_off, gids, gslot, cst, width, height,
                 st[p, 11] = one - tf        # A_tot
                 st[p, 12] = d1[y, x]        # sum w m
                 st[p, 13] = d2[y, x]        # sum w m^2
-        for j in range(start + maxlast, end):
-            pair_used[gslot[j]] = 0
-        # live pixels join in order of decreasing last-contributor index
-        keys = np.empty(nsel, np.int64)
-        for k in range(nsel):
-            keys[k] = -plast[spix[k]]
-        joins = spix[:nsel][np.argsort(keys, kind="mergesort")]
-        live = np.zeros(4, np.uint64)
+        s0 = smask[0]
+        s1m = smask[1]
+        s2m = smask[2]
+        s3m = smask[3]
         mw = np.zeros(4, np.uint64)
-        kj = 0
         evals = 0
-        for j in range(start + maxlast - 1, start - 1, -1):
-            jl = j - start
-            while kj < nsel and plast[joins[kj]] > jl:
-                p = joins[kj]
-                live[p >> 6] |= bit1 << np.uint64(p & 63)
-                kj += 1
+        for j in range(end - 1, start - 1, -1):
             if j - PREFETCH >= start:
                 ga = gids[j - PREFETCH]
                 prefetch_row(params, ga)
@@ -833,17 +803,11 @@ def backward_tiles(params, aux, pbox, tile_off, gids, gslot, cst, width, height,
                 prefetch_at(aux, ga, 12)
                 prefetch_w(pair_grad, gslot[j - PREFETCH])
             q = gslot[j]
-            pb = pbox[j]
-            lx0 = pb & 255
-            lx1 = (pb >> 8) & 255
-            ly0 = int((pb >> 16) & 255)
-            ly1 = int(pb >> 24)
-            cols = ((bit1 << np.uint64(lx1 + 1)) - (bit1 << np.uint64(lx0))) * _REP_ROWS
-            anyb = np.uint64(0)
-            for w in range(4):
-                mw[w] = _box_word(cols, w, ly0, ly1) & live[w]
-                anyb |= mw[w]
-            if anyb == 0:
+            mw[0] = pmask[j, 0] & s0
+            mw[1] = pmask[j, 1] & s1m
+            mw[2] = pmask[j, 2] & s2m
+            mw[3] = pmask[j, 3] & s3m
+            if (mw[0] | mw[1] | mw[2] | mw[3]) == 0:
                 pair_used[q] = 0
                 continue
             pair_used[q] = 1
@@ -866,7 +830,6 @@ def backward_tiles(params, aux, pbox, tile_off, gids, gslot, cst, width, height,
             n2 = params[g, 15]
             mx = aux[g, 0]
             my = aux[g, 1]
-            kcut = aux[g, 2]
             aa0 = aux[g, 4]
             aa1 = aux[g, 5]
             aa2 = aux[g, 6]
@@ -923,15 +886,11 @@ def backward_tiles(params, aux, pbox, tile_off, gids, gslot, cst, width, height,
                     if use3:
                         r = one / (c22 * qz)
                         rho = s * qz * r
-                    if rho > kcut:
-                        continue
                     gauss = np.exp(-half * rho)
                     alpha = o * gauss
                     clamped = alpha > amax
                     if clamped:
                         alpha = amax
-                    if alpha < amin:
-                        continue
                     om = one - alpha
                     ti = st[p, 0] / om
                     wt = alpha * ti

@@ -165,6 +165,7 @@ def _forward_numpy(st: _State, params: np.ndarray, bg: np.ndarray, loss: Optiona
     out_d1 = np.empty((H, W), dt)
     out_d2 = np.empty((H, W), dt)
     pair_stats = np.empty((nrows, K.NSTAT), dt)
+    pmask = np.empty((npair, 4), np.uint64)
     ntile = tile_off.shape[0] - 1
     tile_evals = np.zeros(ntile, np.int64)
     has_loss = loss is not None
@@ -172,12 +173,12 @@ def _forward_numpy(st: _State, params: np.ndarray, bg: np.ndarray, loss: Optiona
     with K.tile_parallel():
         K.forward_tiles(params, aux, pbox, tile_off, gids, gslot, cst, W, H, xs, ys, bg, loss_arr,
                         has_loss, out_rgb, out_depth, out_normal, out_alpha, out_dist, out_T,
-                        out_last, out_count, out_d1, out_d2, pair_stats, tile_evals)
+                        out_last, out_count, out_d1, out_d2, pair_stats, pmask, tile_evals)
     K.reduce_pairs(pair_stats, np.empty(0, np.uint8), xstart, ntiles)
     scores = pair_stats[:N]
     st.params, st.aux, st.bg = params, aux, bg
     st.tile_off, st.gids, st.xstart, st.gslot = tile_off, gids, xstart, gslot
-    st.pbox, st.ntiles, st.nrows = pbox, ntiles, nrows
+    st.pmask, st.ntiles, st.nrows = pmask, ntiles, nrows
     st.T_final, st.last, st.d1, st.d2 = out_T, out_last, out_d1, out_d2
     st.stats = {"pairs_evaluated": int(tile_evals.sum()), "tile_pairs": int(npair),
                 "visible": int(vis.size), "pairs_contributing": int(out_count.sum(dtype=np.int64))}
@@ -203,7 +204,7 @@ def _backward_numpy(st: _State, g_rgb, g_depth, g_normal, g_alpha, g_dist) -> tu
     pair_used = np.empty(st.nrows, np.uint8)
     tile_evals = np.zeros(st.tile_off.shape[0] - 1, np.int64)
     with K.tile_parallel():
-        K.backward_tiles(st.params, st.aux, st.pbox, st.tile_off, st.gids, st.gslot,
+        K.backward_tiles(st.params, st.aux, st.pmask, st.tile_off, st.gids, st.gslot,
                          K.make_consts(dt, st.near, st.far), W, H, np.arange(W, dtype=dt),
                          np.arange(H, dtype=dt), st.bg, st.T_final, st.last, st.d1, st.d2,
                          g_rgb, g_depth, g_normal, g_alpha, g_dist, sel, pair_grad, pair_used,
