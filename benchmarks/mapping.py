@@ -17,7 +17,10 @@ Experiments (``--exp``, comma separated; default all):
   first, which fixes the gauge): keyframe ATE with no refinement / rendered pose only / all visible
   keyframes (single-to-multi).
 * ``pose_frontend``: the same ablation starting from the front end's final keyframe poses and its
-  depth (ATE after Sim(3) alignment: the front end's world frame and scale are its own).
+  depth (ATE after Sim(3) alignment: the front end's world frame and scale are its own); on the
+  generated room, or on any recording with ground truth given by ``--pose-source`` (e.g.
+  ``../shared/data/kitti07_160``, at the working size ``vings run`` picks, mapped as outdoors
+  when ``--pose-outdoor``).
 * ``storage``: street --loop drive (>= 300 m), few iterations per keyframe: active set vs cap, total
   count, passive store spill, peak RSS, PSNR of the start region at first visit and after the loop.
 * ``timing``: mapping time per keyframe at 376x240 with 50 iterations, split in add/train.
@@ -330,7 +333,16 @@ def _frontend_keyframes(a, frames: int) -> tuple[list, dict]:
     from vings_core.eval.traj import interpolate_poses
     from vings_core.frontend import Frontend, FrontendConfig
     from vings_core.config import load_section
-    src = _open(a, _room_dir(a, max(frames, a.frontend_frames)))
+    if a.pose_source:
+        from vings_core.io import SourceOptions, open_source
+        from vings_core.pipeline import auto_working_size
+        cam = open_source(a.pose_source, SourceOptions()).calibration.camera
+        w, h = auto_working_size(cam.width, cam.height)
+        src = open_source(a.pose_source, SourceOptions(width=w, height=h))
+        if src.gt_camera_trajectory() is None:
+            raise SystemExit(f"--pose-source {a.pose_source}: the recording has no ground-truth poses")
+    else:
+        src = _open(a, _room_dir(a, max(frames, a.frontend_frames)))
     fe = Frontend(load_section(FrontendConfig, "frontend", a.params), src.calibration.camera)
     kfs = []
     for n, frame in enumerate(src.frames()):
@@ -367,6 +379,8 @@ def _errors_vs_gt(est: dict, gt: dict) -> dict:
 def exp_pose_frontend(a, cfg: MapperConfig) -> dict:
     """Pose-refinement ablation starting from the front end's keyframe poses and depth."""
     kfs, gt = _frontend_keyframes(a, a.pose_frames)
+    if a.pose_outdoor:
+        cfg = replace(cfg, outdoor=True)
     res = {"initial": _errors_vs_gt({k.stamp_ns: k.T_wc.numpy() for k in kfs}, gt)}
     for mode in ("none", "single", "multi"):
         c = replace(cfg, refine_mode=mode)
@@ -378,7 +392,8 @@ def exp_pose_frontend(a, cfg: MapperConfig) -> dict:
         res[mode] = {**r, "psnr_keyframes_db": float(np.mean(ps)), "refine_per_kf_s": st["refine_per_kf_s"]}
         log(f"pose_fe[{mode}]:", res[mode])
         m.close()
-    return {"frames": a.pose_frames, "keyframes": len(kfs), "results": res,
+    return {"source": a.pose_source or "room", "frames": a.pose_frames, "keyframes": len(kfs),
+            "width": kfs[0].camera.width, "height": kfs[0].camera.height, "results": res,
             "multi_beats_single": res["multi"]["ate_sim3_m"] < res["single"]["ate_sim3_m"],
             "multi_beats_none": res["multi"]["ate_sim3_m"] < res["none"]["ate_sim3_m"]}
 
@@ -470,6 +485,9 @@ def main(argv=None) -> int:
                    help="sc_storage values run with the paper's rule: window sum on every Gaussian "
                         "(sc_storage_per_view=False, prune_window_owned_only=False)")
     p.add_argument("--pose-frames", type=int, default=100)
+    p.add_argument("--pose-source", default=None,
+                   help="pose_frontend on this recording (any source with ground truth) instead of the room")
+    p.add_argument("--pose-outdoor", action="store_true", help="pose_frontend: map with outdoor=True")
     p.add_argument("--frontend-frames", type=int, default=200)
     p.add_argument("--workdir", default=os.path.join(os.environ.get("TMPDIR", "/tmp"), "vings_bench_mapping"),
                    help="where generated synthetic sequences are cached")
