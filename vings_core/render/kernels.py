@@ -766,10 +766,14 @@ def backward_tiles(params, aux, pmask, tile_off, gids, gslot, cst, width, height
         # per-pixel state: T, R (= sum_{k>i} w_k g_k + T_N bg.dC), loss grads, totals
         st = np.empty((TILE_PIX, 16), params.dtype)
         smask = np.zeros(4, np.uint64)
+        maxlast = 0
         for y in range(py0, py1 + 1):
             for x in range(px0, px1 + 1):
-                if sel[y, x] == 0 or last[y, x] == 0:
+                lp = last[y, x]
+                if sel[y, x] == 0 or lp == 0:
                     continue  # not selected, or nothing composited here
+                if lp > maxlast:
+                    maxlast = lp
                 p = (y - py0) * TILE + (x - px0)
                 smask[p >> 6] |= bit1 << np.uint64(p & 63)
                 tf = T_final[y, x]
@@ -792,9 +796,12 @@ def backward_tiles(params, aux, pmask, tile_off, gids, gslot, cst, width, height
         s1m = smask[1]
         s2m = smask[2]
         s3m = smask[3]
+        # entries behind the last contributor of every selected pixel touch none of them
+        for j in range(start + maxlast, end):
+            pair_used[gslot[j]] = 0
         mw = np.zeros(4, np.uint64)
         evals = 0
-        for j in range(end - 1, start - 1, -1):
+        for j in range(start + maxlast - 1, start - 1, -1):
             if j - PREFETCH >= start:
                 ga = gids[j - PREFETCH]
                 prefetch_row(params, ga)
