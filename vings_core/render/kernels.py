@@ -1067,14 +1067,19 @@ def project_fwd(means, quats, scales, opac, colors, Rcw, tcw, fx, fy, cx, cy, ou
 
 @njit(parallel=True, cache=True, error_model="numpy")
 def project_bwd(means, quats, scales, sign, dpar, Rcw, fx, fy, cx, cy, want_pose, d_means,
-                d_quats, d_scales, d_pose):
+                d_quats, d_scales, d_opac, d_rgb, d_pose):
     """Chain rule of :func:`project_fwd`: from ``dpar = dL/d record (N, 16)`` to dL/d means,
-    quats (through the normalisation), scales, and per-Gaussian contributions to dL/dR_cw (9,
+    quats (through the normalisation), scales, opacities ``d_opac (N,)`` and colours ``d_rgb
+    (N, 3)`` (record columns 9 and 10-12, copied), and per-Gaussian contributions to dL/dR_cw (9,
     row-major) and dL/dt_cw (3) in ``d_pose (N, 12)`` when ``want_pose``. Gaussians whose
     geometric gradient (``dL/dM``, ``dL/dnormal``) is zero (culled, or no selected pixel) get zeros
     without the chain rule."""
     n = means.shape[0]
     for i in prange(n):
+        d_opac[i] = dpar[i, 9]
+        d_rgb[i, 0] = dpar[i, 10]
+        d_rgb[i, 1] = dpar[i, 11]
+        d_rgb[i, 2] = dpar[i, 12]
         active = False
         for c in range(9):
             if dpar[i, c] != 0:

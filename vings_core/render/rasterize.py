@@ -336,11 +336,13 @@ class _ProjectSurfels(torch.autograd.Function):
         d_means = np.empty_like(means)
         d_quats = np.empty_like(quats)
         d_scales = np.empty_like(scales)
+        d_opac = np.empty(n, dp.dtype)
+        d_rgb = np.empty((n, 3), dp.dtype)
         d_pose = np.empty((n if want_pose else 1, 12), np.float64)
         if n:
             with _Threads(0, 0, n):
                 K.project_bwd(means, quats, scales, sign, dp, Rcw, *intr, want_pose, d_means,
-                              d_quats, d_scales, d_pose)
+                              d_quats, d_scales, d_opac, d_rgb, d_pose)
         dT = None
         if want_pose:
             acc = d_pose[:n].sum(0) if n else np.zeros(12)
@@ -348,7 +350,7 @@ class _ProjectSurfels(torch.autograd.Function):
             dT[:3, :3] = torch.from_numpy(acc[:9].reshape(3, 3))
             dT[:3, 3] = torch.from_numpy(acc[9:])
         return (torch.from_numpy(d_means), torch.from_numpy(d_quats), torch.from_numpy(d_scales),
-                dpar[:, 9].contiguous(), dpar[:, 10:13].contiguous(), dT, None)
+                torch.from_numpy(d_opac).to(dpar.dtype), torch.from_numpy(d_rgb).to(dpar.dtype), dT, None)
 
 
 def _camera_setup(means, quats, scales, opacities, colors, T, camera, sh_degree, pose_delta,
