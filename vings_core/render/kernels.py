@@ -1176,10 +1176,11 @@ def project_bwd(means, quats, scales, sign, dpar, Rcw, fx, fy, cx, cy, want_pose
         gz = 2 * (x * (G02 + G20) + y * (G12 + G21) + w * (G10 - G01) - 2 * z * (G00 + G11))
         gw = 2 * (x * (G21 - G12) + y * (G02 - G20) + z * (G10 - G01))
         dot = gx * x + gy * y + gz * z + gw * w
-        d_quats[i, 0] = (gx - x * dot) / qn
-        d_quats[i, 1] = (gy - y * dot) / qn
-        d_quats[i, 2] = (gz - z * dot) / qn
-        d_quats[i, 3] = (gw - w * dot) / qn
+        iq = 1 / qn
+        d_quats[i, 0] = (gx - x * dot) * iq
+        d_quats[i, 1] = (gy - y * dot) * iq
+        d_quats[i, 2] = (gz - z * dot) * iq
+        d_quats[i, 3] = (gw - w * dot) * iq
         # p_c = R_cw p + t_cw
         d_means[i, 0] = Rcw[0, 0] * dpc0 + Rcw[1, 0] * dpc1 + Rcw[2, 0] * dpc2
         d_means[i, 1] = Rcw[0, 1] * dpc0 + Rcw[1, 1] * dpc1 + Rcw[2, 1] * dpc2
