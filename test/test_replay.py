@@ -348,7 +348,19 @@ def test_sigterm_stops_a_looping_replay_cleanly(recording, ros, listener_factory
     stamps = [ma.header_ns(m.header) for m in lis.images]
     assert stamps[N_FRAMES] == stamps[0]  # second pass repeats the original stamps
     lis.close()
-    assert files and not _left_over(files)
+    assert files
+    left = _left_over(files)
+    t_end = time.monotonic() + 3.0
+    while left and time.monotonic() < t_end:
+        time.sleep(0.1)
+        left = _left_over(files)
+    # the replay's own segment and lock files are gone. A port it closed (lock file removed) can
+    # outlive it while a live peer -- this process's participant, which lives until rclpy shuts
+    # down -- still references it (Fast DDS); such an orphan is what the launcher's cleanup
+    # removes, and only it may remain
+    assert not [n for n in left if n.endswith(("_el", "_sl"))], left
+    assert all("_port" in n for n in left), left
+    assert sorted(ros_env.cleanup_fastdds_shm(names=left, min_age_s=0.0)) == sorted(left)
 
 
 def test_cleanup_removes_only_dead_processes_files(ros, listener_factory):
