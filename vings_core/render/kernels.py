@@ -893,6 +893,7 @@ def backward_tiles(params, aux, pmask, tile_off, gids, gslot, cst, width, height
                     if use3:
                         r = one / (c22 * qz)
                         rho = s * qz * r
+                    # the forward composited this pixel, so rho <= rho_cut and alpha >= 1/255 here
                     gauss = np.exp(-half * rho)
                     alpha = o * gauss
                     clamped = alpha > amax
