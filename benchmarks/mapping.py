@@ -334,11 +334,9 @@ def _frontend_keyframes(a, frames: int) -> tuple[list, dict]:
     from vings_core.frontend import Frontend, FrontendConfig
     from vings_core.config import load_section
     if a.pose_source:
-        from vings_core.io import SourceOptions, open_source
-        from vings_core.pipeline import auto_working_size
-        cam = open_source(a.pose_source, SourceOptions()).calibration.camera
-        w, h = auto_working_size(cam.width, cam.height)
-        src = open_source(a.pose_source, SourceOptions(width=w, height=h))
+        from vings_core.io import SourceOptions
+        from vings_core.pipeline import open_working_source
+        src = open_working_source(a.pose_source, SourceOptions())
         if src.gt_camera_trajectory() is None:
             raise SystemExit(f"--pose-source {a.pose_source}: the recording has no ground-truth poses")
     else:

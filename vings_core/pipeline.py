@@ -21,7 +21,7 @@ import logging
 import queue
 import threading
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Callable, Optional
 
@@ -34,7 +34,7 @@ from .eval.image import psnr, ssim
 from .eval.output import RunOutput, metrics_template, peak_rss_mb
 from .eval.traj import evaluate_trajectory
 from .geometry import np_pose_compose, np_pose_inverse, np_se3_log, rotation_angle_deg
-from .io.base import Source
+from .io.base import Source, SourceOptions
 from .types import Frame, Keyframe, Trajectory
 
 log = logging.getLogger("vings.run")
@@ -99,6 +99,19 @@ def auto_working_size(native_w: int, native_h: int, width: int = 0, height: int 
     if native_w > 640:
         return native_w // 2, native_h // 2
     return native_w, native_h
+
+
+def open_working_source(path, opts: SourceOptions, width: int = 0, height: int = 0) -> Source:
+    """Open ``path`` at the working resolution ``vings run`` uses: the size in ``opts`` when it
+    sets one, else :func:`auto_working_size` of the stored images' camera with the run config's
+    ``width``/``height`` (0 = automatic)."""
+    from .io import open_source
+    if opts.width is None and opts.height is None:
+        cam = open_source(path, opts).raw_camera
+        if cam is not None:
+            w, h = auto_working_size(cam.width, cam.height, width, height)
+            opts = replace(opts, width=w, height=h)
+    return open_source(path, opts)
 
 
 def _even_subset(items: list, n: int) -> list:

@@ -28,19 +28,12 @@ def register(subparsers) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from vings_core.config import load_section
-    from vings_core.io import open_source
-    from vings_core.pipeline import RunConfig, SlamRunner, auto_working_size
+    from vings_core.pipeline import RunConfig, SlamRunner, open_working_source
 
     cfg = load_section(RunConfig, "run", args.params)
     cfg.sync = cfg.sync or args.sync
     cfg.gt_poses = cfg.gt_poses or args.gt_poses
-    opts = source_options(args)
-    if opts.width is None and opts.height is None:
-        probe = open_source(args.source, source_options(args))
-        cam = probe.raw_camera
-        if cam is not None:
-            opts.width, opts.height = auto_working_size(cam.width, cam.height, cfg.width, cfg.height)
-    source = open_source(args.source, opts)
+    source = open_working_source(args.source, source_options(args), cfg.width, cfg.height)
     for w in source.warnings:
         print(f"vings run: warning: {w}")
     runner = SlamRunner(source, args.out, params_file=args.params, run_cfg=cfg,
