@@ -214,6 +214,25 @@ def test_sampled_backward_is_the_masked_full_backward():
     assert out.stats["bwd_pixels"] == int(mask.sum())
 
 
+def test_sample_selection_ranks_nan_scores_last():
+    # a NaN score (e.g. from a diverged pixel) must neither empty its tile's selection nor win
+    score = torch.rand(CAM.height, CAM.width, generator=torch.Generator().manual_seed(21), dtype=F64)
+    score[::3, ::5] = float("nan")
+    for ratio in (0.5, 0.99):
+        mask = select_sample_pixels(score, ratio)
+        for ty in range(0, CAM.height, 16):
+            for tx in range(0, CAM.width, 16):
+                m = mask[ty:ty + 16, tx:tx + 16]
+                s = score[ty:ty + 16, tx:tx + 16]
+                k = math.ceil(ratio * m.numel())
+                assert int(m.sum()) == k
+                finite = ~torch.isnan(s)
+                if k <= int(finite.sum()):     # enough numbers: no NaN pixel is taken
+                    assert not bool((m & ~finite).any())
+                else:                          # every number is taken, NaNs fill the rest
+                    assert bool(m[finite].all())
+
+
 def test_sample_map_set_after_forward_overrides_loss_map():
     g = _scene(150, seed=17)
     leaves = [t.clone().requires_grad_(True) for t in g]

@@ -682,7 +682,8 @@ def forward_tiles(params, aux, pbox, tile_off, gids, gslot, cst, width, height, 
 @njit(parallel=True, cache=True, error_model="numpy")
 def select_pixels(score, ratio, out_sel):
     """Per 16x16 tile, mark the ``ceil(ratio * n)`` pixels of highest ``score`` (ties: lower
-    row-major index first). ``ratio >= 1`` marks every pixel."""
+    row-major index first; a NaN score ranks below every number). ``ratio >= 1`` marks every
+    pixel."""
     height, width = score.shape
     tiles_x = (width + TILE - 1) // TILE
     tiles_y = (height + TILE - 1) // TILE
@@ -704,7 +705,9 @@ def select_pixels(score, ratio, out_sel):
         q = 0
         for y in range(py0, py1):
             for x in range(px0, px1):
-                vals[q] = -score[y, x]
+                v = -score[y, x]
+                # NaN last (as +inf): a NaN threshold would select no pixel of the tile
+                vals[q] = v if v == v else np.inf
                 out_sel[y, x] = 0
                 q += 1
         # k-th best score by quickselect, then the strictly better pixels and, in row-major

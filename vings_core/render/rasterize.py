@@ -187,7 +187,9 @@ def _forward_numpy(st: _State, params: np.ndarray, bg: np.ndarray, loss: Optiona
             has_loss, means2d)
 
 
-def _backward_numpy(st: _State, g_rgb, g_depth, g_normal, g_alpha, g_dist) -> tuple:
+def _backward_numpy(st: _State, g_rgb, g_depth, g_normal, g_alpha, g_dist,
+                    want_bg: bool = True) -> tuple:
+    """Per-Gaussian dL/d record ``(N, 16)`` and dL/d background (``None`` unless ``want_bg``)."""
     t0 = time.perf_counter()
     dt = st.params.dtype
     W, H = st.width, st.height
@@ -211,8 +213,7 @@ def _backward_numpy(st: _State, g_rgb, g_depth, g_normal, g_alpha, g_dist) -> tu
                          tile_evals)
     K.reduce_pairs(pair_grad, pair_used, st.xstart, st.ntiles)
     grads = pair_grad[:N]
-    selT = st.T_final * sel
-    g_bg = np.einsum("hw,hwc->c", selT, g_rgb)
+    g_bg = np.einsum("hw,hwc->c", st.T_final * sel, g_rgb) if want_bg else None
     st.stats["bwd_raster_ms"] = (time.perf_counter() - t0) * 1e3
     st.stats["bwd_pairs_evaluated"] = int(tile_evals.sum())
     st.stats["bwd_pixels"] = int(sel.sum(dtype=np.int64))
@@ -240,10 +241,12 @@ class _Rasterize2DGS(torch.autograd.Function):
         def np_(g):
             return np.ascontiguousarray(g.detach().cpu().numpy().astype(dt, copy=False))
 
+        want_bg = bool(ctx.needs_input_grad[1])  # a constant background needs no gradient
         with _Threads(st.width, st.height, st.params.shape[0]):
             grads, g_bg = _backward_numpy(st, np_(g_rgb), np_(g_depth), np_(g_normal),
-                                          np_(g_alpha), np_(g_dist))
-        return torch.from_numpy(grads), torch.from_numpy(g_bg), None, None, None
+                                          np_(g_alpha), np_(g_dist), want_bg)
+        return (torch.from_numpy(grads), torch.from_numpy(g_bg) if want_bg else None, None, None,
+                None)
 
 
 def _check(name: str, t, shape_tail: tuple, n: Optional[int]) -> torch.Tensor:
