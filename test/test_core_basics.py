@@ -157,8 +157,11 @@ def test_config_loading(tmp_path):
     p = tmp_path / "p.yaml"
     p.write_text("/**:\n  ros__parameters:\n    stage:\n      iters: 5\n"
                  "node:\n  ros__parameters:\n    stage:\n      lr: 2\n")
-    cfg = load_section(_Cfg, "stage", p)
+    cfg = load_section(_Cfg, "stage", p, sections=("stage",))
     assert cfg == _Cfg(iters=5, lr=2.0)
+    # the project's own sections: a misspelt one is an error, not silently ignored
+    with pytest.raises(ConfigError, match="unknown parameter section.*'stage'"):
+        load_section(_Cfg, "stage", p)
     assert isinstance(cfg.lr, float)
     assert load_section(_Cfg, "stage") == _Cfg()
     with pytest.raises(ConfigError, match="unknown parameter 'iterz'"):
@@ -173,6 +176,27 @@ def test_config_loading(tmp_path):
         read_params_file(bad)
     with pytest.raises(ConfigError, match="not found"):
         read_params_file(tmp_path / "nope.yaml")
+
+
+def test_params_file_dotted_names_and_bad_files(tmp_path):
+    from vings_core.mapping import MapperConfig
+    p = tmp_path / "p.yaml"
+    # dotted names are valid ROS 2 params syntax: they join their section
+    p.write_text("/**:\n  ros__parameters:\n    mapping.iters_per_keyframe: 5\n    mapping:\n"
+                 "      window_size: 3\n")
+    cfg = load_section(MapperConfig, "mapping", p)
+    assert (cfg.iters_per_keyframe, cfg.window_size) == (5, 3)
+    for text, msg in (("/**:\n  ros__parameters:\n    mappping: {window_size: 2}\n", "'mappping'"),
+                      ("/**:\n  ros__parameters:\n    iters_per_keyframe: 7\n", "'iters_per_keyframe'"),
+                      ("/**:\n  ros__parameters: 5\n", "must be a mapping"),
+                      ("/**:\n  ros__parameters:\n    mapping: {a: [1, 2}\n", "line 3"),
+                      ("/**:\n  ros__parameters:\n    mapping.window_size: 3\n    mapping: 4\n", "twice")):
+        p.write_text(text)
+        with pytest.raises(ConfigError, match=msg):
+            load_section(MapperConfig, "mapping", p)
+    p.write_bytes(b"# caf\xe9\n/**:\n  ros__parameters: {}\n")
+    with pytest.raises(ConfigError, match="not UTF-8"):
+        read_params_file(p)
 
 
 def test_cli_help_lists_and_errors(capsys):

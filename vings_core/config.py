@@ -26,15 +26,32 @@ from .errors import ConfigError
 C = TypeVar("C")
 
 
-def read_params_file(path: str | os.PathLike) -> dict:
-    """Merged ``ros__parameters`` of every node block of a ROS 2 params YAML (``/**`` first)."""
+#: top-level sections of ``ros__parameters`` (the nodes read the same names as ``section.key``)
+KNOWN_SECTIONS = ("ros", "frontend", "mapping", "run")
+
+
+def read_params_file(path: str | os.PathLike, sections: tuple = KNOWN_SECTIONS) -> dict:
+    """Merged ``ros__parameters`` of every node block of a ROS 2 params YAML (``/**`` first).
+
+    Dotted names (``mapping.window_size: 4``, valid ROS 2 params syntax) are expanded into their
+    sections; a section other than ``sections`` (default :data:`KNOWN_SECTIONS`; e.g. a misspelt
+    ``mappping``) is a :class:`ConfigError`, as the nodes treat it."""
     path = Path(path)
     if not path.is_file():
         raise ConfigError(f"{path}: params file not found")
     try:
-        doc = yaml.safe_load(path.read_text()) or {}
+        text = path.read_text(encoding="utf-8")
+    except UnicodeDecodeError as e:
+        raise ConfigError(f"{path}: not UTF-8 text (byte {e.start}); save the params file as UTF-8") from None
+    except OSError as e:
+        raise ConfigError(f"{path}: cannot read the params file ({e.strerror or e})") from None
+    try:
+        doc = yaml.safe_load(text) or {}
     except yaml.YAMLError as e:
-        raise ConfigError(f"{path}: not valid YAML: {e}") from None
+        mark = getattr(e, "problem_mark", None)
+        at = f" at line {mark.line + 1}, column {mark.column + 1}" if mark is not None else ""
+        why = getattr(e, "problem", None) or str(e).splitlines()[0]
+        raise ConfigError(f"{path}: not valid YAML{at}: {why}") from None
     if not isinstance(doc, dict):
         raise ConfigError(f"{path}: top level must be a mapping of node names")
     merged: dict = {}
@@ -43,8 +60,34 @@ def read_params_file(path: str | os.PathLike) -> dict:
         block = doc[node]
         if not isinstance(block, dict) or "ros__parameters" not in block:
             raise ConfigError(f"{path}: node block {node!r} has no 'ros__parameters' mapping")
-        _deep_merge(merged, block["ros__parameters"] or {})
+        params = block["ros__parameters"] or {}
+        if not isinstance(params, dict):
+            raise ConfigError(f"{path}: node block {node!r}: 'ros__parameters' must be a mapping of "
+                              f"sections, got {params!r}")
+        _deep_merge(merged, _expand_dotted(params, f"{path}: node block {node!r}"))
+    unknown = [k for k in merged if k not in sections]
+    if unknown:
+        raise ConfigError(f"{path}: unknown parameter section(s) {', '.join(map(repr, unknown))}; "
+                          f"parameters live in the sections {', '.join(sections)} "
+                          f"(e.g. mapping: {{window_size: 8}} or mapping.window_size: 8)")
     return merged
+
+
+def _expand_dotted(d: dict, where: str) -> dict:
+    """``{'mapping.window_size': 4, 'mapping': {'k': 1}} -> {'mapping': {'window_size': 4, 'k': 1}}``."""
+    out: dict = {}
+    for k, v in d.items():
+        v = _expand_dotted(v, where) if isinstance(v, dict) else v
+        parts = str(k).split(".")
+        for name in reversed(parts[1:]):
+            v = {name: v}
+        if parts[0] in out and isinstance(out[parts[0]], dict) and isinstance(v, dict):
+            _deep_merge(out[parts[0]], v)
+        elif parts[0] in out:
+            raise ConfigError(f"{where}: parameter {k!r} is given twice")
+        else:
+            out[parts[0]] = v
+    return out
 
 
 def _deep_merge(dst: dict, src: dict) -> None:
@@ -129,12 +172,13 @@ def _coerce(tp: Any, val: Any, where: str) -> Any:
 
 
 def load_section(cls: Type[C], section: str, params_file: str | os.PathLike | None = None,
-                 overrides: dict | None = None) -> C:
-    """Config dataclass ``cls`` from section ``section`` of ``params_file`` (defaults if None)."""
+                 overrides: dict | None = None, sections: tuple = KNOWN_SECTIONS) -> C:
+    """Config dataclass ``cls`` from section ``section`` of ``params_file`` (defaults if None);
+    ``sections``: the sections the file may have (:func:`read_params_file`)."""
     values: dict = {}
     where = section
     if params_file is not None:
-        merged = read_params_file(params_file)
+        merged = read_params_file(params_file, sections)
         sec = merged.get(section, {})
         if not isinstance(sec, dict):
             raise ConfigError(f"{params_file}: section {section!r} must be a mapping")

@@ -19,7 +19,7 @@ import time
 from dataclasses import dataclass
 from typing import Any, Callable, Generic, Optional, TypeVar
 
-from vings_core.config import ConfigError, config_from_dict
+from vings_core.config import KNOWN_SECTIONS, ConfigError, config_from_dict
 from vings_core.errors import VingsError
 
 log = logging.getLogger("vings.node")
@@ -86,7 +86,6 @@ class NodeConfig:
             raise ValueError("calib_wait_s and shutdown_timeout_s must be >= 0")
 
 
-KNOWN_SECTIONS = ("ros", "frontend", "mapping", "run")
 #: parameters rclpy declares on every node
 BUILTIN_PARAMETERS = ("use_sim_time", "start_type_description_service")
 
