@@ -94,6 +94,29 @@ def test_run_output_rejects_file_path(tmp_path):
         RunOutput(f)
 
 
+def test_prepare_checks_the_folder_and_clears_a_previous_runs_marker(tmp_path):
+    f = tmp_path / "file"
+    f.write_text("x")
+    with pytest.raises(InputError, match="cannot write to the output folder"):
+        RunOutput(f / "sub").prepare()          # found before any work, not at the end
+    out = RunOutput(tmp_path / "o")
+    out.write_metrics(metrics_template())
+    out.save_render("kf_1", np.zeros((4, 4, 3), np.uint8))
+    (out.renders_dir / "notes.txt").write_text("mine")
+    out.prepare()                                # a new run into the same folder
+    assert not out.metrics_path.exists()         # no stale "complete run" marker
+    assert sorted(p.name for p in out.renders_dir.iterdir()) == ["notes.txt"]
+
+
+def test_outputs_get_the_umask_mode_not_0600(tmp_path):
+    import os
+    old = os.umask(0o022)
+    os.umask(old)
+    out = RunOutput(tmp_path / "o")
+    out.write_metrics(metrics_template())
+    assert out.metrics_path.stat().st_mode & 0o777 == 0o666 & ~old
+
+
 def test_peak_rss_mb():
     a = peak_rss_mb()
     assert 10 < a < 100_000

@@ -434,6 +434,20 @@ def test_ply_header_and_fields_read_back(tmp_path):
     assert np.allclose(np.stack([d["nx"], d["ny"], d["nz"]], 1), gm.normals().numpy(), atol=1e-6)
 
 
+@pytest.mark.parametrize("sh_degree", [0, 1, 3])
+def test_empty_map_writes_a_valid_ply(tmp_path, sh_degree):
+    # a run whose front end never initialised ends with no Gaussians: still a loadable file
+    from vings_core.mapping import write_ply
+    gm = _random_map(5, sh_degree=sh_degree)
+    empty = gm.index(torch.zeros(0, dtype=torch.long))
+    assert len(empty) == 0
+    p = tmp_path / "map.ply"
+    write_ply(p, empty)
+    assert b"element vertex 0" in p.read_bytes()
+    d = read_ply(p)
+    assert list(d) == ply_property_names(sh_degree) and all(len(v) == 0 for v in d.values())
+
+
 def test_checkpoint_round_trip_is_bit_exact(room_small, tmp_path):
     cam, frames = room_small
     cfg = MapperConfig(points_per_keyframe=800, delta_k=2, tau=0.05, max_active=100000, iters_per_keyframe=3,

@@ -372,6 +372,7 @@ class SlamRunner:
         self.source = source
         self.cfg = run_cfg or load_section(RunConfig, "run", params_file)
         self.out = RunOutput(out_dir)
+        self.out.prepare()
         self.progress = progress
         self.on_frame = on_frame
         cam = source.calibration.camera
@@ -388,6 +389,7 @@ class SlamRunner:
         self._gt_poses: dict[int, np.ndarray] = {}
         self._kf_stamps: list[int] = []
         self._mapper_err: Optional[BaseException] = None
+        self._abort = False     # set when the run fails: the mapper thread drops what is queued
         self._pending_corrections: list[dict[int, np.ndarray]] = []
         self._lock = threading.Lock()
         self._queue: "queue.Queue[Optional[tuple[str, object]]]" = queue.Queue()
@@ -397,7 +399,8 @@ class SlamRunner:
     # --------------------------------------------------------------------------- mapping side
 
     def _map_keyframe(self, kf: Keyframe) -> None:
-        _, corrections = map_keyframe(self.mapper, self.map_link, kf, refine=self.frontend is not None)
+        _, corrections = map_keyframe(self.mapper, self.map_link, kf, refine=self.frontend is not None,
+                                      chunk=10, stop=lambda: self._abort)
         if corrections:
             with self._lock:
                 self._pending_corrections.append(corrections)
@@ -417,7 +420,8 @@ class SlamRunner:
                 msg = self._queue.get()
                 if msg is None:
                     return
-                self._handle(*msg)
+                if not self._abort:     # a failed or interrupted run writes nothing: skip the rest
+                    self._handle(*msg)
         except BaseException as e:  # surfaced in the main thread
             self._mapper_err = e
             log.exception("mapper thread failed")
@@ -499,6 +503,9 @@ class SlamRunner:
                 self._send_moves(worker)
                 for kf in kfs:
                     self._submit(kf, worker)
+        except BaseException:
+            self._abort = True      # Ctrl-C or an input error: do not map the queued keyframes first
+            raise
         finally:
             if worker is not None:
                 self._queue.put(None)
@@ -525,6 +532,9 @@ class SlamRunner:
     def _finish(self, n_frames: int, wall: float) -> dict:
         traj = self.trajectory()
         kf_traj = self.keyframe_trajectory()
+        if len(kf_traj) == 0:
+            log.warning("no keyframe was mapped (%d frames; the front end did not initialise: too "
+                        "few frames or too little camera motion): the map is empty", n_frames)
         self.out.write_trajectory(traj)
         self.out.write_keyframes(kf_traj)
         self.mapper.save_ply(self.out.map_path)

@@ -11,23 +11,40 @@ from typing import Any, Callable
 log = logging.getLogger("vings")
 
 
+def _process_umask() -> int:
+    old = os.umask(0o022)   # read at import (single-threaded): os.umask can only be read by setting
+    os.umask(old)
+    return old
+
+
+_FILE_MODE = 0o666 & ~_process_umask()
+
+
 def atomic_write(path: str | os.PathLike, write: Callable[[str], None]) -> None:
     """Call ``write(tmp_path)`` then rename ``tmp_path`` onto ``path`` (same folder, atomic on POSIX).
 
-    A crash leaves either the old file or the new one, never a half-written one.
+    A crash leaves either the old file or the new one, never a half-written one. The file gets the
+    mode a plain ``open`` would give it (``0666`` less the umask; temporary files are ``0600``). An
+    ``OSError`` (folder not writable, disk full) becomes a :class:`VingsError` naming ``path``.
     """
+    from .errors import VingsError
+
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    os.close(fd)
+    tmp = None
     try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+        os.close(fd)
         write(tmp)
         with open(tmp, "rb+") as f:
             os.fsync(f.fileno())
+        os.chmod(tmp, _FILE_MODE)
         os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
+    except BaseException as e:
+        if tmp is not None and os.path.exists(tmp):
             os.unlink(tmp)
+        if isinstance(e, OSError):
+            raise VingsError(f"{path}: cannot write ({e.strerror or e})") from e
         raise
 
 

@@ -13,11 +13,13 @@ Every file is written atomically (temp file + rename).
 from __future__ import annotations
 
 import json
+import logging
 import math
 import os
 import re
 import resource
 import sys
+import tempfile
 from pathlib import Path
 from typing import Any, Union
 
@@ -27,6 +29,8 @@ from ..errors import InputError
 from ..trajectory_io import write_tum
 from ..types import Trajectory
 from ..util import atomic_write_bytes, atomic_write_text
+
+log = logging.getLogger("vings")
 
 TRAJECTORY_FILE = "trajectory.tum"
 KEYFRAMES_FILE = "keyframes.tum"
@@ -136,6 +140,32 @@ class RunOutput:
         self.out_dir = Path(out_dir)
         if self.out_dir.exists() and not self.out_dir.is_dir():
             raise InputError(f"{self.out_dir}: output path exists and is not a folder")
+
+    def prepare(self) -> None:
+        """Before a run's work: create the folder and check that it is writable (so a bad
+        ``--out`` fails at once, not after hours of SLAM), and remove what would make a previous
+        run's outputs look like this run's: ``metrics.json`` (written last: its presence marks a
+        complete run) and the PNGs in ``renders/``. The other files are replaced when written."""
+        try:
+            self.out_dir.mkdir(parents=True, exist_ok=True)
+            fd, probe = tempfile.mkstemp(prefix=".write-test.", dir=self.out_dir)
+            os.close(fd)
+            os.unlink(probe)
+        except OSError as e:
+            raise InputError(f"{self.out_dir}: cannot write to the output folder "
+                             f"({e.strerror or e})") from None
+        old = [p for p in (self.metrics_path, self.trajectory_path, self.map_path) if p.exists()]
+        if old:
+            log.warning("%s holds the outputs of a previous run; they are replaced", self.out_dir)
+        try:
+            if self.metrics_path.exists():
+                self.metrics_path.unlink()
+            if self.renders_dir.is_dir():
+                for p in self.renders_dir.glob("*.png"):
+                    p.unlink()
+        except OSError as e:
+            raise InputError(f"{self.out_dir}: cannot replace a previous run's outputs "
+                             f"({e.strerror or e})") from None
 
     @property
     def trajectory_path(self) -> Path:

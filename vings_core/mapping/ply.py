@@ -44,13 +44,15 @@ def gaussians_to_ply_array(gm: GaussianMap) -> np.ndarray:
     q = q / q.norm(dim=-1, keepdim=True).clamp_min(1e-30)
     normals = gm.normals().detach().cpu().numpy()
     sh = gm.sh.detach().cpu().numpy()
-    rest = sh[:, 1:, :].transpose(0, 2, 1).reshape(n, -1)
+    rest = sh[:, 1:, :].transpose(0, 2, 1).reshape(n, 3 * (sh.shape[1] - 1))
     ls = gm.log_scales.detach().cpu().numpy()
     third = ls.min(1, keepdims=True) + FLAT_LOG_RATIO
     cols = [gm.means.detach().cpu().numpy(), normals, sh[:, 0, :], rest,
             gm.opacity_logits.detach().cpu().numpy()[:, None], ls, third,
             q[:, [3, 0, 1, 2]].numpy()]
-    return np.concatenate([c.astype(np.float32).reshape(n, -1) for c in cols], 1)
+    # explicit widths: reshape(n, -1) is ambiguous for an empty map (n = 0)
+    return np.concatenate([c.astype(np.float32).reshape(n, int(np.prod(c.shape[1:])))
+                           for c in cols], 1)
 
 
 def write_ply(path: str | os.PathLike, gm: GaussianMap) -> None:
