@@ -85,6 +85,8 @@ class FrontendConfig:
             raise ValueError(f"ncc_min must be in [-1, 1), got {self.ncc_min}")
         if self.num_threads < 0:
             raise ValueError("num_threads must be >= 0")
+        if not 0 <= self.dis_finest_scale <= 4:
+            raise ValueError(f"dis_finest_scale must be in 0..4 (pyramid level), got {self.dis_finest_scale}")
         if self.window < 3:
             raise ValueError(f"window must be >= 3 keyframes, got {self.window}")
         if not 1 <= self.fixed_poses < self.window:

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 
 from .info import add_source_arguments, source_options
 
@@ -35,7 +36,7 @@ def run(args: argparse.Namespace) -> int:
     cfg.gt_poses = cfg.gt_poses or args.gt_poses
     source = open_working_source(args.source, source_options(args), cfg.width, cfg.height)
     for w in source.warnings:
-        print(f"vings run: warning: {w}")
+        print(f"vings run: warning: {w}", file=sys.stderr)
     runner = SlamRunner(source, args.out, params_file=args.params, run_cfg=cfg,
                         progress=not args.no_progress)
     metrics = runner.run()
