@@ -33,7 +33,7 @@ from vings_core.pipeline import FrontendPoseLink, RunConfig
 from vings_core.types import CameraModel, Frame, Trajectory
 
 from .node_common import (InputQueue, NodeConfig, RateMeter, Worker, node_sections, rss_mb,
-                          run_node, section_config)
+                          run_node, section_config, worth_reporting as _report)
 
 #: front-end keyframe poses after later window BA moved them (nav_msgs/Path, each pose stamped with
 #: its keyframe stamp); the mapper applies them as increments (vings_core.pipeline.MapperPoseLink).
@@ -64,6 +64,8 @@ class FrontendNode(Node):
         self.imu_count = 0
         self.frames_without_camera = 0
         self.bad_frames = 0
+        self.bad_camera_infos = 0
+        self._last_stamp: Optional[int] = None
         self.last_state = "waiting"
         if self.ncfg.calib_file:
             calib = load_calibration_yaml(self.ncfg.calib_file)
@@ -104,7 +106,16 @@ class FrontendNode(Node):
 
     def _on_camera_info(self, msg: CameraInfo) -> None:
         if self.raw_camera is None:
-            self._set_camera(camera_info_to_camera(msg, T.CAMERA_INFO_TOPIC))
+            try:
+                cam = camera_info_to_camera(msg, T.CAMERA_INFO_TOPIC)
+            except InputError as e:
+                # e.g. a driver that publishes K = 0 until its calibration is loaded: keep waiting
+                self.bad_camera_infos += 1
+                if _report(self.bad_camera_infos):
+                    self.get_logger().warning(f"ignored {self.bad_camera_infos} unusable "
+                                              f"{T.CAMERA_INFO_TOPIC} message(s): {e}")
+                return
+            self._set_camera(cam)
 
     def _on_imu(self, msg: Imu) -> None:
         # The IMU is fused in a later stage of the front end; samples are counted for diagnostics.
@@ -135,14 +146,26 @@ class FrontendNode(Node):
         msg = self.queue.get(timeout=0.1)
         if msg is None:
             return
-        stamp = header_ns(msg.header, f"{T.IMAGE_TOPIC}.header")
+        try:
+            stamp = header_ns(msg.header, f"{T.IMAGE_TOPIC}.header")
+        except InputError as e:
+            self._skip(msg, f"skipped an image: {e}")
+            return
+        if self._last_stamp is not None and stamp <= self._last_stamp:
+            # a repeated stamp, a driver stamping 0, or a recording played again from its start:
+            # tracking cannot go back in time, so such images are dropped (restart the node for
+            # a new recording)
+            self._skip(msg, f"skipped image {stamp}: stamps must increase (last processed "
+                            f"{self._last_stamp}); restart the front end to process a recording "
+                            f"again from its start")
+            return
         if self.frontend is None:
             # the image and its camera_info travel on two topics: the first image may overtake
             # its calibration, so wait for it briefly instead of dropping the image
             self._camera_ready.wait(self.ncfg.calib_wait_s)
         if self.frontend is None:
             self.frames_without_camera += 1
-            if self.frames_without_camera in (1, 20) or self.frames_without_camera % 200 == 0:
+            if _report(self.frames_without_camera):
                 self.get_logger().warning(f"no calibration yet (no {T.CAMERA_INFO_TOPIC} and no "
                                           f"ros.calib_file): {self.frames_without_camera} images skipped")
             self._ack(msg.header)
@@ -150,11 +173,10 @@ class FrontendNode(Node):
         try:
             frame = self.decoder(msg, self.raw_camera)
         except InputError as e:  # a bad message is reported and skipped, the node keeps running
-            self.bad_frames += 1
-            self.get_logger().warning(f"skipped image {stamp}: {e}")
-            self._ack(msg.header)
+            self._skip(msg, f"skipped image {stamp}: {e}")
             return
         frame = Frame(stamp, self.undist(frame.image), self.undist.camera)
+        self._last_stamp = stamp
         self._take_corrections()
         ests = self.frontend.process(frame)
         for est in ests:
@@ -171,6 +193,13 @@ class FrontendNode(Node):
         if now - self._last_path_pub > 1.0:
             self._publish_path()
             self._last_path_pub = now
+        self._ack(msg.header)
+
+    def _skip(self, msg: Image, why: str) -> None:
+        """Drop a bad image: counted, reported (rate-limited), acknowledged."""
+        self.bad_frames += 1
+        if _report(self.bad_frames):
+            self.get_logger().warning(f"{why} ({self.bad_frames} image(s) skipped so far)")
         self._ack(msg.header)
 
     def _ack(self, header: Header) -> None:

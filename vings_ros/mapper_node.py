@@ -30,11 +30,12 @@ from msg_adapters.keyframe import PART_TOPICS, KeyframeAssembler
 from msg_adapters.markers import keyframe_frustums_marker, marker_array, trajectory_marker
 from msg_adapters.pointcloud import points_to_pointcloud2
 from msg_adapters.pose import path_to_trajectory, trajectory_to_path
+from vings_core.errors import InputError
 from vings_core.mapping import Mapper, MapperConfig
 from vings_core.pipeline import MapperPoseLink, map_keyframe
 from vings_core.types import Keyframe, Trajectory
 from .node_common import (InputQueue, NodeConfig, RateMeter, Worker, node_sections, rss_mb,
-                          run_node, section_config)
+                          run_node, section_config, worth_reporting)
 
 #: training iterations between two checks for shutdown / a due checkpoint
 TRAIN_CHUNK = 5
@@ -83,6 +84,7 @@ class MapperNode(Node):
         self._dirty = False                 # map changed since the last checkpoint
         self.checkpoints = 0
         self.keyframes_mapped = 0
+        self.bad_parts = 0
 
         sq = T.sensor_qos
         for part, type_ in (("image", Image), ("depth", Image), ("inv_depth_var", Image),
@@ -120,7 +122,14 @@ class MapperNode(Node):
         self.error = e
 
     def _on_part(self, part: str, msg) -> None:
-        kf = self.assembler.add(part, msg)
+        try:
+            kf = self.assembler.add(part, msg)
+        except InputError as e:  # a malformed keyframe part is reported and dropped
+            self.bad_parts += 1
+            if worth_reporting(self.bad_parts):
+                self.get_logger().warning(f"dropped a malformed keyframe part ({self.bad_parts} so "
+                                          f"far): {e}")
+            return
         if kf is not None:
             self.queue.put(kf)
 
@@ -243,6 +252,7 @@ class MapperNode(Node):
 
     def _publish_diagnostics(self) -> None:
         values = {"keyframes": len(self.mapper.keyframe_poses()), "keyframes_mapped": self.keyframes_mapped,
+                  "bad_keyframe_parts": self.bad_parts,
                   "gaussians_total": self.mapper.num_gaussians, "gaussians_active": self.mapper.num_active,
                   "gaussians_passive": self.mapper.num_passive, "queue_length": len(self.queue),
                   "keyframe_rate_hz": self.rate.hz, "incomplete_packets": self.assembler.pending,

@@ -90,6 +90,11 @@ class NodeConfig:
 BUILTIN_PARAMETERS = ("use_sim_time", "start_type_description_service")
 
 
+def worth_reporting(count: int) -> bool:
+    """Rate limit for repeated warnings: the 1st, the 20th, then every 200th occurrence."""
+    return count in (1, 20) or count % 200 == 0
+
+
 def node_sections(node) -> dict[str, dict]:
     """The node's parameters (declared from the params file overrides) grouped by section:
     ``{'frontend': {'window': 8, ...}, ...}``. Unknown sections are a :class:`ConfigError`."""
