@@ -122,3 +122,25 @@ def test_frame_converter_fixed_mapping():
     assert np.array_equal(fconv(np.array([[0.0, 1.0, 0.5]], np.float32)), [[0, 255, 128]])
     u8 = np.array([[3]], np.uint8)
     assert FrameConverter("u")(u8) is u8
+
+
+def test_frame_converter_skips_black_first_frames_and_reports_saturation():
+    notes = []
+    conv = FrameConverter("src", notes.append)
+    assert np.array_equal(conv(np.zeros((2, 2), np.uint16)), np.zeros((2, 2), np.uint8))  # dark start
+    assert not notes                                       # the mapping is not fixed by it
+    out = conv(np.array([[3000, 1500]], np.uint16))        # 12-bit values: shift 4
+    assert out.tolist() == [[187, 93]] and "shift of 4 bits" in notes[-1]
+    conv(np.array([[65535]], np.uint16))                   # brighter than the mapping: saturates
+    conv(np.array([[65535]], np.uint16))
+    assert sum("saturate" in n for n in notes) == 1        # reported once
+    fconv = FrameConverter("f", notes.append)
+    assert fconv(np.zeros((1, 2), np.float32)).tolist() == [[0, 0]]
+    assert fconv(np.array([[50.0, 25.0]], np.float32)).tolist() == [[255, 128]]
+
+
+def test_odd_width_yuv_and_bayer_are_input_errors():
+    with pytest.raises(InputError, match="even width"):
+        decode_image(np.zeros(12, np.uint8).tobytes(), "yuv422", 3, 2, 6, "cam")
+    with pytest.raises(InputError, match="even width and height"):
+        decode_image(np.zeros(12, np.uint8).tobytes(), "bayer_rggb8", 4, 3, 4, "cam")

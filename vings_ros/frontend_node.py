@@ -175,6 +175,9 @@ class FrontendNode(Node):
         except InputError as e:  # a bad message is reported and skipped, the node keeps running
             self._skip(msg, f"skipped image {stamp}: {e}")
             return
+        finally:
+            while self.decoder.warnings:    # 16-bit / float to 8-bit mapping notes (once each)
+                self.get_logger().warning(self.decoder.warnings.pop(0))
         frame = Frame(stamp, self.undist(frame.image), self.undist.camera)
         self._last_stamp = stamp
         self._take_corrections()

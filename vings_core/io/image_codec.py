@@ -82,13 +82,21 @@ def decode_image(data: Union[bytes, bytearray, memoryview, np.ndarray], encoding
         arr = arr[..., 2::-1]
     elif post == "drop_alpha":
         arr = arr[..., :3]
-    elif post == "bayer":
+    elif post in ("bayer", "uyvy", "yuyv"):
         import cv2
-        arr = cv2.cvtColor(arr[..., 0], _bayer_code(encoding))
-    elif post in ("uyvy", "yuyv"):
-        import cv2
-        code = cv2.COLOR_YUV2RGB_UYVY if post == "uyvy" else cv2.COLOR_YUV2RGB_YUY2
-        arr = cv2.cvtColor(arr, code)
+        if width % 2 or (post == "bayer" and height % 2):
+            raise InputError(f"{where}: a {encoding} image needs an even "
+                             f"{'width and height' if post == 'bayer' else 'width'}, got "
+                             f"{width}x{height}")
+        try:
+            if post == "bayer":
+                arr = cv2.cvtColor(arr[..., 0], _bayer_code(encoding))
+            else:
+                code = cv2.COLOR_YUV2RGB_UYVY if post == "uyvy" else cv2.COLOR_YUV2RGB_YUY2
+                arr = cv2.cvtColor(arr, code)
+        except cv2.error as e:
+            raise InputError(f"{where}: cannot convert the {encoding} {width}x{height} image to RGB "
+                             f"({str(e).strip().splitlines()[-1]})") from None
     if arr.ndim == 3 and arr.shape[2] == 1:
         arr = arr[..., 0]
     return np.ascontiguousarray(arr)
@@ -170,9 +178,10 @@ class FrameConverter:
     stream (chosen from the first image) so that brightness stays consistent over time.
 
     ``uint8``: unchanged. Integer 16-bit: shifted right by ``bits - 8`` where ``bits`` is the bit
-    depth needed by the first image's maximum (so 10/12-bit cameras are not dark). Float: values in
-    [0, 1] are scaled by 255, otherwise by ``255 / max`` of the first image. Colour 16-bit likewise.
-    Warnings are reported once through ``warn``.
+    depth needed by the first non-black image's maximum (so 10/12-bit cameras are not dark). Float:
+    values in [0, 1] are scaled by 255, otherwise by ``255 / max`` of the first non-black image.
+    Colour 16-bit likewise. All-black images (a camera starting up) do not fix the mapping. Notes,
+    and a warning the first time a later image saturates the chosen mapping, go to ``warn``.
     """
 
     def __init__(self, where: str, warn=None) -> None:
@@ -180,31 +189,46 @@ class FrameConverter:
         self.warn = warn
         self._shift: int | None = None
         self._scale: float | None = None
+        self._clip_warned = False
 
     def __call__(self, img: np.ndarray) -> np.ndarray:
         if img.dtype == np.uint8:
             return img
         if img.dtype.kind in "ui" and img.dtype.itemsize > 1:
+            mx = int(img.max()) if img.size else 0
             if self._shift is None:
-                mx = int(img.max()) if img.size else 0
+                if mx <= 0:
+                    return np.zeros(img.shape, np.uint8)    # black: decide on a later image
                 bits = max(8, int(mx).bit_length())
                 self._shift = bits - 8
                 self._note(f"{self.where}: {img.dtype} images converted to 8 bit by a right shift of "
-                           f"{self._shift} bits (chosen from the first image, max {mx})")
+                           f"{self._shift} bits (chosen from the first non-black image, max {mx})")
+            elif mx >> self._shift > 255:
+                self._warn_clip(f"max {mx} > {(256 << self._shift) - 1}")
             out = np.clip(img.astype(np.int64) >> self._shift, 0, 255)
             return out.astype(np.uint8)
         if img.dtype.kind == "f":
+            finite = img[np.isfinite(img)]
+            mx = float(finite.max()) if finite.size else 0.0
             if self._scale is None:
-                finite = img[np.isfinite(img)]
-                mx = float(finite.max()) if finite.size else 1.0
+                if mx <= 0.0:
+                    return np.zeros(img.shape, np.uint8)    # black: decide on a later image
                 self._scale = 255.0 if mx <= 1.0 else 255.0 / mx
                 self._note(f"{self.where}: float images converted to 8 bit by a scale of "
-                           f"{self._scale:.6g} (chosen from the first image, max {mx:.6g})")
+                           f"{self._scale:.6g} (chosen from the first non-black image, max {mx:.6g})")
+            elif mx * self._scale > 255.5:
+                self._warn_clip(f"max {mx:.6g} > {255.0 / self._scale:.6g}")
             out = np.nan_to_num(img.astype(np.float32) * self._scale, nan=0.0, posinf=255, neginf=0)
             return np.clip(out + 0.5, 0, 255).astype(np.uint8)
         if img.dtype.kind == "i" and img.dtype.itemsize == 1:
             return np.clip(img.astype(np.int16), 0, 127).astype(np.uint8) * 2
         raise InputError(f"{self.where}: images of dtype {img.dtype} cannot be used as camera frames")
+
+    def _warn_clip(self, detail: str) -> None:
+        if not self._clip_warned:
+            self._clip_warned = True
+            self._note(f"{self.where}: an image is brighter than the 8-bit mapping chosen from the "
+                       f"first images ({detail}): bright pixels saturate (reported once)")
 
     def _note(self, msg: str) -> None:
         if self.warn is not None:
