@@ -44,7 +44,16 @@ def imu_sample_to_msg(sample: ImuSample, frame_id: str, gyro_var: Optional[float
 
 
 def msg_to_imu_sample(msg: Imu, where: str = "imu") -> ImuSample:
-    """Imu -> ImuSample (orientation ignored). Non-finite readings raise InputError."""
+    """Imu -> ImuSample (orientation ignored). Non-finite readings, a reading marked "not provided"
+    (``covariance[0] = -1``, sensor_msgs convention) and a non-finite covariance raise InputError."""
+    for field in ("angular_velocity_covariance", "linear_acceleration_covariance"):
+        cov = np.asarray(getattr(msg, field), dtype=np.float64)
+        if cov.size and cov[0] == -1:
+            raise InputError(f"{where}.{field}[0] = -1: the sensor does not provide "
+                             f"{field[:-len('_covariance')]}; the front end needs both gyro and "
+                             f"accelerometer readings")
+        if not np.all(np.isfinite(cov)):
+            raise InputError(f"{where}.{field} is not finite: {cov.tolist()}")
     av, la = msg.angular_velocity, msg.linear_acceleration
     g = np.array([av.x, av.y, av.z], dtype=np.float64)
     a = np.array([la.x, la.y, la.z], dtype=np.float64)

@@ -266,6 +266,16 @@ def test_imu_round_trip_with_variances():
     msg.linear_acceleration.y = float("nan")
     with pytest.raises(InputError, match=r"/imu/data.*linear_acceleration"):
         ma.msg_to_imu_sample(msg, "/imu/data")
+    msg.linear_acceleration.y = 0.0
+    cov = np.zeros(9)
+    cov[0] = -1.0                                   # "not provided": not a zero reading
+    msg.angular_velocity_covariance = cov
+    with pytest.raises(InputError, match=r"/imu/data.angular_velocity_covariance\[0\] = -1"):
+        ma.msg_to_imu_sample(msg, "/imu/data")
+    cov[0] = float("nan")
+    msg.angular_velocity_covariance = cov
+    with pytest.raises(InputError, match="not finite"):
+        ma.msg_to_imu_sample(msg, "/imu/data")
 
 
 # -------------------------------------------------------------------------------------- poses
