@@ -17,6 +17,7 @@ import numpy as np
 from sensor_msgs.msg import CameraInfo, RegionOfInterest
 
 from vings_core.errors import InputError
+from vings_core.io.calib_yaml import camera_info_intrinsics
 from vings_core.types import CameraModel
 
 from .stamps import make_header
@@ -60,7 +61,7 @@ def camera_info_to_camera(msg: CameraInfo, where: str = "camera_info") -> Camera
     K = np.asarray(msg.k, dtype=np.float64).reshape(3, 3)
     if not np.all(np.isfinite(K)):
         raise InputError(f"{where}: field k holds non-finite values")
-    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+    fx, fy = K[0, 0], K[1, 1]
     if not (fx > 0 and fy > 0):
         raise InputError(f"{where}: field k has fx={fx}, fy={fy}; the camera is uncalibrated "
                          f"(REP-104: K = 0) or K is invalid")
@@ -91,18 +92,10 @@ def camera_info_to_camera(msg: CameraInfo, where: str = "camera_info") -> Camera
     if model == "none":
         coeffs = np.zeros(0)
 
-    # binning / ROI (REP-104): width/height/K describe the full sensor; the image is the ROI,
-    # binned. Same formulas as image_geometry.PinholeCameraModel.
     roi = msg.roi
-    bx, by = max(int(msg.binning_x), 1), max(int(msg.binning_y), 1)
-    x0, y0 = int(roi.x_offset), int(roi.y_offset)
-    rw = int(roi.width) or width
-    rh = int(roi.height) or height
-    if x0 + rw > width or y0 + rh > height:
-        raise InputError(f"{where}: roi {rw}x{rh}+{x0}+{y0} exceeds the {width}x{height} sensor")
-    if (bx, by, x0, y0, rw, rh) != (1, 1, 0, 0, width, height):
-        width, height = rw // bx, rh // by
-        fx, fy, cx, cy = fx / bx, fy / by, (cx - x0) / bx, (cy - y0) / by
+    width, height, fx, fy, cx, cy = camera_info_intrinsics(
+        K, width, height, (roi.x_offset, roi.y_offset, roi.width, roi.height),
+        (msg.binning_x, msg.binning_y), where)
     try:
         return CameraModel(width=width, height=height, fx=float(fx), fy=float(fy), cx=float(cx),
                            cy=float(cy), distortion_model=model, distortion=coeffs)

@@ -191,6 +191,7 @@ class BagSpec:
     empty_topics: Sequence[str] = ()
     zero_header: bool = False
     gyro_cov0: float = 0.0          # -1 marks the gyro as unavailable
+    info_scale: int = 1             # CameraInfo of a sensor this many times larger, binned by it
 
 
 def image_payload(i: int, encoding: str) -> tuple[np.ndarray, np.ndarray]:
@@ -271,16 +272,18 @@ def make_bag(path: Path, spec: BagSpec, storage: str = "mcap") -> Path:
                 linear_acceleration_covariance=np.zeros(9))
             msgs.append((s, topic, "sensor_msgs/msg/Imu", ser(m, "sensor_msgs/msg/Imu")))
     if spec.camera_info:
-        K = np.array([FX, 0, CX, 0, FY, CY, 0, 0, 1.0])
+        b = spec.info_scale
+        K = np.array([FX * b, 0, CX * b, 0, FY * b, CY * b, 0, 0, 1.0])
         P = np.array([FX, 0, CX, 0, 0, FY, CY, 0, 0, 0, 1.0, 0])
         roi = T["sensor_msgs/msg/RegionOfInterest"](x_offset=0, y_offset=0, height=0, width=0,
                                                      do_rectify=False)
         kw = dict(D=np.array(spec.D, float), K=K, R=np.eye(3).reshape(-1), P=P) if ros1 else \
             dict(d=np.array(spec.D, float), k=K, r=np.eye(3).reshape(-1), p=P)
         for s in img_st[:2]:
-            m = T["sensor_msgs/msg/CameraInfo"](header=hdr(s, "cam0"), height=H, width=W,
-                                                distortion_model=spec.distortion_model, binning_x=0,
-                                                binning_y=0, roi=roi, **kw)
+            m = T["sensor_msgs/msg/CameraInfo"](header=hdr(s, "cam0"), height=H * b, width=W * b,
+                                                distortion_model=spec.distortion_model,
+                                                binning_x=0 if b == 1 else b,
+                                                binning_y=0 if b == 1 else b, roi=roi, **kw)
             msgs.append((s, spec.camera_info, "sensor_msgs/msg/CameraInfo", ser(m, "sensor_msgs/msg/CameraInfo")))
     if spec.gt_topic:
         gst, TT = gt_series(len(img_st))

@@ -154,11 +154,41 @@ def test_out_of_order_and_duplicate_stamps(tmp_path):
 
 
 def test_zero_header_stamps_fall_back_to_bag_time(tmp_path):
-    p = make_bag(tmp_path / "z", BagSpec(zero_header=True, imu_topics=()), "mcap")
+    p = make_bag(tmp_path / "z", BagSpec(zero_header=True), "mcap")
     src = open_source(p)
     assert src.frame_stamps().tolist() == [T0 + i * 50_000_000 for i in range(4)]
-    assert any("zero header stamp" in w for w in src.warnings)
+    assert any("image(s) with a zero header stamp" in w for w in src.warnings)
+    assert any("/imu0: 40 IMU sample(s) with a zero header stamp" in w for w in src.warnings)
     assert len(list(src.frames())) == 4
+
+
+def test_binned_camera_info_gives_the_image_intrinsics(tmp_path):
+    # CameraInfo of a 2x larger sensor, binned 2x2 (REP-104): the recorded image's intrinsics
+    p = make_bag(tmp_path / "b", BagSpec(info_scale=2, imu_topics=()), "mcap")
+    c = open_source(p).calibration.camera
+    assert (c.width, c.height, c.fx, c.fy, c.cx, c.cy) == (W, H, FX, FY, CX, CY)
+
+
+def test_unusable_default_ground_truth_topic_is_ignored_with_a_warning(tmp_path):
+    p = make_bag(tmp_path / "g", BagSpec(empty_topics=("/ground_truth/pose",), imu_topics=()), "mcap")
+    src = open_source(p)                   # nobody asked for it: not an error
+    assert src.ground_truth is None
+    assert any("/ground_truth/pose" in w and "no ground truth" in w for w in src.warnings)
+    with pytest.raises(InputError, match="ground-truth topic '/ground_truth/pose'"):
+        open_source(p, SourceOptions(gt_topic="/ground_truth/pose"))   # asked for: an error
+
+
+def test_upper_case_mcap_suffix_and_bad_stamp_nanoseconds(tmp_path):
+    import struct
+
+    from vings_core.io.bag import header_stamp_ns
+    p = make_bag(tmp_path / "seq.mcap", BagSpec(imu_topics=()), "plain")
+    up = p.rename(tmp_path / "SEQ.MCAP")
+    with pytest.raises(InputError, match="lower-case suffix '.mcap'"):   # not "unknown format"
+        open_source(up)
+    raw = bytes([0, 1, 0, 0]) + struct.pack("<iI", 5, 1_500_000_000)
+    with pytest.raises(InputError, match=r"bag:/cam: header stamp nanoseconds 1500000000"):
+        header_stamp_ns(raw, False, "bag:/cam")
 
 
 def test_calibration_sources(tmp_path):

@@ -241,6 +241,10 @@ def test_camera_info_errors_name_field():
     msg.width = 0
     with pytest.raises(InputError, match="width/height"):
         ma.camera_info_to_camera(msg, "/camera/camera_info")
+    msg = ma.camera_to_camera_info(cam, 0, "cam")
+    msg.k = np.asarray(msg.k).reshape(3, 3).T.reshape(-1)    # written column-major
+    with pytest.raises(InputError, match=r"/camera/camera_info.*row-major"):
+        ma.camera_info_to_camera(msg, "/camera/camera_info")
 
 
 # ------------------------------------------------------------------------------------------ imu

@@ -30,7 +30,8 @@ from ..errors import InputError
 from ..geometry import np_quat_to_rotmat
 from ..types import CameraModel, Frame
 from .base import SourceOptions
-from .calib_yaml import CalibParts, distortion_model_name, make_camera, read_calibration_parts
+from .calib_yaml import (CalibParts, camera_info_intrinsics, distortion_model_name, make_camera,
+                         read_calibration_parts)
 from .common import LoaderSource, check_size, order_stamps
 from .image_codec import decode_compressed, decode_image
 
@@ -63,12 +64,19 @@ def header_stamp_ns(raw: bytes, ros1: bool, where: str) -> int:
     else:  # CDR: 4-byte encapsulation (byte 1: 1 = little endian), int32 sec, uint32 nanosec
         e = "<" if raw[1] == 1 else ">"
         sec, nsec = struct.unpack_from(e + "iI", raw, 4)
+    return _checked_ns(sec, nsec, where)
+
+
+def _checked_ns(sec: int, nsec: int, where: str) -> int:
+    if not 0 <= int(nsec) < 1_000_000_000:
+        raise InputError(f"{where}: header stamp nanoseconds {int(nsec)} outside [0, 1e9) "
+                         f"(sec {int(sec)}): corrupt message or a writer bug")
     return int(sec) * 1_000_000_000 + int(nsec)
 
 
-def _stamp_of(msg) -> int:
+def _stamp_of(msg, where: str) -> int:
     st = msg.header.stamp
-    return int(st.sec) * 1_000_000_000 + int(getattr(st, "nanosec", getattr(st, "nsec", 0)))
+    return _checked_ns(st.sec, getattr(st, "nanosec", getattr(st, "nsec", 0)), where)
 
 
 def _field(msg, *names):
@@ -79,17 +87,22 @@ def _field(msg, *names):
 
 
 def camera_from_camera_info(msg, where: str) -> Optional[CameraModel]:
-    """A CameraInfo message (ROS 1 or 2 field names) -> raw CameraModel, or None if uncalibrated."""
+    """A CameraInfo message (ROS 1 or 2 field names) -> raw CameraModel of the recorded image
+    (region of interest and binning applied, :func:`camera_info_intrinsics`), or None if
+    uncalibrated (K = 0)."""
     K = np.asarray(_field(msg, "k", "K"), dtype=np.float64).reshape(3, 3)
     D = np.asarray(_field(msg, "d", "D"), dtype=np.float64).reshape(-1)
     if K[0, 0] <= 0 or K[1, 1] <= 0:
         return None
-    name = msg.distortion_model or ("plumb_bob" if D.size else "none")
+    name = msg.distortion_model or ("plumb_bob" if np.any(D) else "none")
     model = distortion_model_name(name, f"{where}: distortion_model")
     if model == "equidistant":
         D = D[:4]
-    return make_camera(int(msg.width), int(msg.height), K[0, 0], K[1, 1], K[0, 2], K[1, 2], model, D,
-                       where)
+    roi = msg.roi
+    w, h, fx, fy, cx, cy = camera_info_intrinsics(
+        K, int(msg.width), int(msg.height), (roi.x_offset, roi.y_offset, roi.width, roi.height),
+        (msg.binning_x, msg.binning_y), where)
+    return make_camera(w, h, fx, fy, cx, cy, model, D, where)
 
 
 def pose_of(msg, msgtype: str) -> np.ndarray:
@@ -115,11 +128,15 @@ class BagSource(LoaderSource):
             inner = sorted(list(path.glob("*.mcap")) + list(path.glob("*.db3")))
             if len(inner) == 1:
                 path = inner[0]
-        super().__init__(path, "mcap" if path.suffix == ".mcap" else "bag", options)
+        suffix = path.suffix.lower()
+        super().__init__(path, "mcap" if suffix == ".mcap" else "bag", options)
         if not self.path.exists():
             raise InputError(f"{self.path}: bag not found")
-        self._ros1 = self.path.suffix == ".bag"
-        self.format = ("ROS 1 bag" if self._ros1 else "MCAP file" if self.path.suffix == ".mcap"
+        if suffix in (".mcap", ".bag", ".db3") and path.suffix != suffix:
+            raise InputError(f"{self.path}: the bag reader (rosbags) recognises only the lower-case "
+                             f"suffix {suffix!r}; rename the file (or link it) with that suffix")
+        self._ros1 = suffix == ".bag"
+        self.format = ("ROS 1 bag" if self._ros1 else "MCAP file" if suffix == ".mcap"
                        else "ROS 2 bag folder" if self.path.is_dir() else "ROS 2 sqlite3 file")
         o = self.options
         with self._open() as r:
@@ -128,8 +145,15 @@ class BagSource(LoaderSource):
             self.image_topic = self._pick("image", o.image_topic, IMAGE_TYPES)
             self.imu_topic = self._pick("IMU", o.imu_topic, (IMU,))
             self.camera_info_topic = self._pick_camera_info(o.camera_info_topic)
-            gt = o.gt_topic or (DEFAULT_GT_TOPIC if DEFAULT_GT_TOPIC in self.topic_table else None)
-            self.gt_topic = self._pick("ground-truth", gt, GT_TYPES) if gt else None
+            self.gt_topic = self._pick("ground-truth", o.gt_topic, GT_TYPES) if o.gt_topic else None
+            if not o.gt_topic and DEFAULT_GT_TOPIC in self.topic_table:
+                # the default topic only when usable: nobody asked for it, so never a hard error
+                info = self.topic_table[DEFAULT_GT_TOPIC]
+                if info["type"] in GT_TYPES and info["count"] > 0:
+                    self.gt_topic = DEFAULT_GT_TOPIC
+                else:
+                    self._warn(f"{self.path}: {DEFAULT_GT_TOPIC} ({info['type']}, {info['count']} "
+                               f"msgs) is not a usable ground-truth topic; no ground truth")
             self._first_pass(r)
 
     # -- reader --------------------------------------------------------------------------------
@@ -221,6 +245,7 @@ class BagSource(LoaderSource):
         imu_st: list[int] = []
         imu_v: list[tuple] = []
         imu_missing = {"gyro": 0, "accel": 0}
+        imu_zero = 0
         cam_msg = None
         gt_st: list[int] = []
         gt_T: list[np.ndarray] = []
@@ -235,7 +260,9 @@ class BagSource(LoaderSource):
                     first_img = self._decode(r, conn, raw, s)
             elif topic == self.imu_topic:
                 m = self._deser(r, raw, conn, f"{self.path}:{topic}")
-                s = _stamp_of(m) or int(t)
+                s = _stamp_of(m, f"{self.path}:{topic}")
+                if s == 0:
+                    s, imu_zero = int(t), imu_zero + 1
                 if m.angular_velocity_covariance[0] == -1:
                     imu_missing["gyro"] += 1
                 if m.linear_acceleration_covariance[0] == -1:
@@ -250,12 +277,15 @@ class BagSource(LoaderSource):
                         cam_msg = m
             elif topic == self.gt_topic:
                 m = self._deser(r, raw, conn, f"{self.path}:{topic}")
-                gt_st.append(_stamp_of(m) if _stamp_of(m) else int(t))
+                gt_st.append(_stamp_of(m, f"{self.path}:{topic}") or int(t))
                 gt_T.append(pose_of(m, conn.msgtype))
 
         if img_zero:
             self._warn(f"{self.path}:{self.image_topic}: {img_zero} image(s) with a zero header stamp; "
                        f"used the bag receive time")
+        if imu_zero:
+            self._warn(f"{self.path}:{self.imu_topic}: {imu_zero} IMU sample(s) with a zero header "
+                       f"stamp; used the bag receive time")
         # frames: sorted, de-duplicated, limited
         st = np.asarray(img_st, dtype=np.int64)
         idx = order_stamps(st, f"{self.path}:{self.image_topic}", self._warn)

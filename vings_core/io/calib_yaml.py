@@ -91,6 +91,36 @@ def distortion_model_name(name: str, where: str) -> str:
                      f"plumb_bob, rational_polynomial, equidistant or none)")
 
 
+def camera_info_intrinsics(K: Any, width: int, height: int, roi: tuple, binning: tuple,
+                           where: str) -> tuple[int, int, float, float, float, float]:
+    """Intrinsics of the *published image* from a ``sensor_msgs/CameraInfo`` (REP-104): ``K``
+    (row-major 3x3) and ``width x height`` describe the full sensor; the image is the region of
+    interest ``roi = (x_offset, y_offset, width, height)`` (0 size = whole sensor), binned by
+    ``binning = (bx, by)`` (0 = 1). Same formulas as image_geometry.PinholeCameraModel. Returns
+    ``(width, height, fx, fy, cx, cy)``; a K that is not an upper-triangular pinhole matrix
+    (e.g. written column-major) is an :class:`InputError` naming ``where``."""
+    K = np.asarray(K, dtype=np.float64).reshape(3, 3)
+    if not np.all(np.isfinite(K)):
+        raise InputError(f"{where}: field k holds non-finite values")
+    if K[1, 0] != 0 or K[2, 0] != 0 or K[2, 1] != 0 or K[2, 2] != 1:
+        raise InputError(f"{where}: field k must be row-major [fx, s, cx, 0, fy, cy, 0, 0, 1], "
+                         f"got {K.reshape(-1).tolist()} (column-major?)")
+    if K[0, 1] != 0:
+        raise InputError(f"{where}: field k has skew {K[0, 1]}; cameras with skew are not "
+                         f"supported")
+    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+    bx, by = max(int(binning[0]), 1), max(int(binning[1]), 1)
+    x0, y0 = int(roi[0]), int(roi[1])
+    rw = int(roi[2]) or width
+    rh = int(roi[3]) or height
+    if x0 + rw > width or y0 + rh > height:
+        raise InputError(f"{where}: roi {rw}x{rh}+{x0}+{y0} exceeds the {width}x{height} sensor")
+    if (bx, by, x0, y0, rw, rh) != (1, 1, 0, 0, width, height):
+        width, height = rw // bx, rh // by
+        fx, fy, cx, cy = fx / bx, fy / by, (cx - x0) / bx, (cy - y0) / by
+    return width, height, float(fx), float(fy), float(cx), float(cy)
+
+
 def make_camera(width: Any, height: Any, fx: Any, fy: Any, cx: Any, cy: Any, model: str,
                 coeffs: Any, where: str) -> CameraModel:
     """Build a :class:`CameraModel`, turning bad values into an :class:`InputError` naming ``where``."""
