@@ -69,7 +69,8 @@ def camera_info_to_camera(msg: CameraInfo, where: str = "camera_info") -> Camera
     if not np.all(np.isfinite(d)):
         raise InputError(f"{where}: field d holds non-finite values")
     name = str(msg.distortion_model).strip().lower()
-    if name in ("", "none") and not np.any(d):
+    if (name in ("", "none") and not np.any(d)) or d.size == 0:
+        # no coefficients at all means no distortion whatever the model says (image_geometry)
         model, coeffs = "none", np.zeros(0)
     elif name in ("plumb_bob", "radtan", "radial_tangential", "rational_polynomial"):
         if name == "rational_polynomial" and np.any(d[5:]):

@@ -90,6 +90,9 @@ def msgs_to_keyframe(image: Image, depth: Image, inv_depth_var: Image, pose: Pos
         raise InputError(f"{PART_TOPICS['camera_info']}: keyframes must be undistorted, got "
                          f"distortion_model {camera.distortion_model!r}")
     img = msg_to_image(image, PART_TOPICS["image"])
+    if img.dtype != np.uint8:
+        raise InputError(f"{PART_TOPICS['image']}: keyframe images must be 8-bit (mono8/rgb8/bgr8), "
+                         f"got encoding {image.encoding!r}")
     d = msg_to_float_image(depth, PART_TOPICS["depth"])
     var = msg_to_float_image(inv_depth_var, PART_TOPICS["inv_depth_var"])
     for k, a in (("image", img), ("depth", d), ("inv_depth_var", var)):

@@ -206,6 +206,16 @@ def test_cli_help_lists_and_errors(capsys):
     assert "usage: vings" in out
 
 
+def test_vings_run_checks_the_params_file_before_any_work(tmp_path, capsys):
+    from vings_ros.cli import main
+    bad = tmp_path / "p.yaml"
+    bad.write_text("/**:\n  ros__parameters:\n    ros: {queue_sise: 3}\n")
+    rc = main(["run", str(tmp_path / "no_such_source"), "--out", str(tmp_path / "o"), "--params", str(bad)])
+    err = capsys.readouterr()
+    assert rc != 0 and "unknown parameter 'queue_sise'" in err.out + err.err
+    assert not (tmp_path / "o").exists()
+
+
 def test_se3_exp_gradient_finite_at_zero():
     xi = torch.zeros(6, dtype=torch.float64, requires_grad=True)
     T = G.se3_exp(xi)

@@ -221,6 +221,8 @@ def test_camera_info_binning_roi_and_tolerated_variants():
     assert b.distortion_model == "radtan" and b.distortion.tolist() == [0.1, 0.01, 0, 0, 0]
     msg.distortion_model, msg.d = "", []
     assert ma.camera_info_to_camera(msg).distortion_model == "none"
+    msg.distortion_model = "plumb_bob"        # plumb_bob with an empty d: no distortion (as bags)
+    assert ma.camera_info_to_camera(msg).distortion_model == "none"
 
 
 def test_camera_info_errors_name_field():

@@ -32,6 +32,9 @@ def run(args: argparse.Namespace) -> int:
     from vings_core.pipeline import RunConfig, SlamRunner, open_working_source
 
     cfg = load_section(RunConfig, "run", args.params)
+    if args.params:     # the nodes' section too: a typo there is reported here, not at launch time
+        from vings_ros.node_common import NodeConfig
+        load_section(NodeConfig, "ros", args.params)
     cfg.sync = cfg.sync or args.sync
     cfg.gt_poses = cfg.gt_poses or args.gt_poses
     source = open_working_source(args.source, source_options(args), cfg.width, cfg.height)
