@@ -372,7 +372,6 @@ class SlamRunner:
         self.source = source
         self.cfg = run_cfg or load_section(RunConfig, "run", params_file)
         self.out = RunOutput(out_dir)
-        self.out.prepare()
         self.progress = progress
         self.on_frame = on_frame
         cam = source.calibration.camera
@@ -395,6 +394,7 @@ class SlamRunner:
         self._queue: "queue.Queue[Optional[tuple[str, object]]]" = queue.Queue()
         self.fe_link = FrontendPoseLink(self.cfg)     # pose exchange, as between the nodes
         self.map_link = MapperPoseLink()
+        self.out.prepare()      # after the configuration is known to be valid, before any work
 
     # --------------------------------------------------------------------------- mapping side
 
