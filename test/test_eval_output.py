@@ -124,3 +124,32 @@ def test_peak_rss_mb():
     assert peak_rss_mb() >= a
     assert peak_rss_mb(include_children=True) >= peak_rss_mb()
     del big
+
+
+def test_failed_run_stops_the_mapper_instead_of_mapping_its_queue(tmp_path):
+    """An input error (or Ctrl-C) in the middle of a concurrent `vings run`: the keyframes still
+    queued for the mapper are dropped, not mapped first (a long run made the user wait minutes)."""
+    from vings_core.errors import InputError as _IE
+    from vings_core.io import open_source
+    from vings_core.pipeline import RunConfig, SlamRunner
+    from vings_core.sim import generate
+    generate("room", tmp_path / "room", frames=60, width=192, height=128, seed=5, mcap=False)
+    p = tmp_path / "p.yaml"     # a slow mapper, so that keyframes queue up behind it
+    p.write_text("/**:\n  ros__parameters:\n    mapping:\n      iters_per_keyframe: 400\n"
+                 "      points_per_keyframe: 1500\n")
+    src = open_source(tmp_path / "room")
+    frames = src.frames
+
+    def failing_frames():
+        for i, f in enumerate(frames()):
+            if i == 56:
+                raise _IE("frame 56: corrupt image (test)")
+            yield f
+    src.frames = failing_frames
+    r = SlamRunner(src, tmp_path / "out", str(p), RunConfig(sync=False), progress=False)
+    with pytest.raises(_IE, match="frame 56"):
+        r.run()
+    submitted, mapped = len(r._kf_stamps), len(r.mapper.keyframe_poses())
+    assert submitted >= 3, submitted
+    assert mapped < submitted, (mapped, submitted)
+    assert not (tmp_path / "out" / "metrics.json").exists()
