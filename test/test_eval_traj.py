@@ -9,6 +9,7 @@ from vings_core.eval.align import apply_sim3, umeyama
 from vings_core.eval.traj import (associate, associate_indices, ate, default_rpe_lengths,
                                   evaluate_trajectory, interpolate_poses, rpe)
 from vings_core.geometry import np_so3_exp, rotation_angle_deg
+from vings_core.trajectory_io import read_tum
 from vings_core.types import Trajectory
 
 T0 = 1_400_000_000 * 10**9  # a realistic epoch in ns
@@ -280,3 +281,24 @@ def test_nearly_orthonormal_rotations_are_projected():
     bad.poses[5, :3, :3] *= 2
     with pytest.raises(InputError, match="not orthonormal"):
         evaluate_trajectory(bad, gt)
+
+
+def test_different_time_bases_are_an_error_not_a_meaningless_ate(tmp_path):
+    gt = wavy(160, dt_ns=103_600_000, t0=0)          # ~9.65 Hz (KITTI-like), seconds since start
+    # the same poses stamped with the frame index as seconds: a few coincidental matches
+    est = Trajectory(np.arange(160, dtype=np.int64) * 1_000_000_000, gt.poses.copy())
+    with pytest.raises(InputError, match="different time bases"):
+        evaluate_trajectory(est, gt)
+    # a denser estimate than the ground truth is fine (each GT sample matches once)
+    dense = wavy(1600, dt_ns=10_000_000, t0=0)
+    assert evaluate_trajectory(dense, gt, interpolate=False)["matched_poses"] >= 150
+
+
+def test_tum_stamps_in_nanoseconds_are_a_clear_error(tmp_path):
+    p = tmp_path / "est_ns.tum"
+    p.write_text("1700000000000000000 0 0 0 0 0 0 1\n")
+    with pytest.raises(InputError, match=r"est_ns.tum:1: .*must be in seconds"):
+        read_tum(p)
+    p.write_text("inf 0 0 0 0 0 0 1\n")
+    with pytest.raises(InputError, match=r"est_ns.tum:1: not a finite time stamp"):
+        read_tum(p)

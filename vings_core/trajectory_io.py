@@ -23,11 +23,21 @@ def stamp_ns_to_str(stamp_ns: int) -> str:
 
 
 def str_to_stamp_ns(text: str) -> int:
-    """Seconds string (any number of decimals, or exponent form) -> int nanoseconds, exact."""
+    """Seconds string (any number of decimals, or exponent form) -> int nanoseconds, exact.
+
+    Stamps must be seconds within int64 nanoseconds (|t| < ~292 years); a larger number is
+    most likely a stamp in ns / us / ms and is a ValueError saying so."""
     try:
-        return int((Decimal(text) * 1_000_000_000).to_integral_value())
+        d = Decimal(text)
     except InvalidOperation as e:
         raise ValueError(f"not a time stamp: {text!r}") from e
+    if not d.is_finite():
+        raise ValueError(f"not a finite time stamp: {text!r}")
+    ns = int((d * 1_000_000_000).to_integral_value())
+    if abs(ns) >= 2 ** 63:
+        raise ValueError(f"time stamp {text} is out of range for seconds; stamps must be in seconds "
+                         f"(this looks like nanoseconds, microseconds or milliseconds)")
+    return ns
 
 
 def format_tum(traj: Trajectory) -> str:

@@ -169,12 +169,28 @@ def associate(est: Trajectory, gt: Trajectory, max_dt_ns: int = DEFAULT_MAX_DT_N
             Trajectory(a["gt_stamps_ns"], a["gt_poses"]))
 
 
+#: below this fraction of the estimate's poses inside the ground truth's time span matched, the
+#: two files almost surely use different time bases (e.g. frame index vs seconds) or rates
+MIN_MATCH_FRACTION = 0.5
+
+
 def _require_matches(m: int, min_matches: int, est: Trajectory, gt: Trajectory, max_dt_ns: int) -> None:
     if m < min_matches:
         raise InputError(f"too few matched poses: {m} of {len(est)} estimate poses have ground truth "
                          f"within {max_dt_ns * 1e-6:g} ms (need >= {min_matches}; estimate spans "
                          f"{_span_str(est.stamps_ns)}, ground truth {_span_str(gt.stamps_ns)}; "
                          "try a larger --max-dt-ms)")
+    st, gs = est.stamps_ns, gt.stamps_ns
+    inside = int(np.count_nonzero((st >= gs[0] - max_dt_ns) & (st <= gs[-1] + max_dt_ns)))
+    gt_inside = int(np.count_nonzero((gs >= st[0] - max_dt_ns) & (gs <= st[-1] + max_dt_ns)))
+    possible = min(inside, gt_inside)   # each GT sample matches one estimate pose at most
+    if m < MIN_MATCH_FRACTION * possible:
+        raise InputError(f"only {m} of the {inside} estimate poses inside the ground truth's time span "
+                         f"have ground truth within {max_dt_ns * 1e-6:g} ms: the two trajectories "
+                         f"most likely use different time bases or units (estimate spans "
+                         f"{_span_str(est.stamps_ns)} with {len(est)} poses, ground truth "
+                         f"{_span_str(gt.stamps_ns)} with {len(gt)}); an ATE over a few coincidental "
+                         "matches would be meaningless")
 
 
 # ------------------------------------------------------------------------------------------ ATE
