@@ -55,6 +55,14 @@ def test_update_metrics_merges(tmp_path):
     assert m["frames"] == 10 and m["ate_sim3_m"] == 0.1
     assert out.read_metrics() == m
     assert validate_metrics({}) == metrics_template()
+    # a folder without metrics.json holds no complete run: not silently marked complete
+    with pytest.raises(InputError, match="no metrics.json"):
+        RunOutput(tmp_path / "incomplete").update_metrics({"ate_sim3_m": 0.1})
+    assert not (tmp_path / "incomplete" / "metrics.json").exists()
+    # a hand-edited metrics.json with an unknown key: one-line error naming the file
+    out.metrics_path.write_text('{"frames": 3, "notes": "x"}')
+    with pytest.raises(InputError, match=r"metrics.json: unknown metrics key"):
+        out.update_metrics({"ate_sim3_m": 0.1})
 
 
 def test_trajectories_and_renders(tmp_path):

@@ -214,10 +214,18 @@ class RunOutput:
             raise InputError(f"{self.metrics_path}: not valid JSON ({e})") from None
         if not isinstance(d, dict):
             raise InputError(f"{self.metrics_path}: expected a JSON object")
-        return validate_metrics(d)
+        try:
+            return validate_metrics(d)
+        except ValueError as e:
+            raise InputError(f"{self.metrics_path}: {e}") from None
 
     def update_metrics(self, partial: dict) -> dict:
-        """Merge ``partial`` into the existing ``metrics.json`` (e.g. ATE added after the run)."""
+        """Merge ``partial`` into the existing ``metrics.json`` (e.g. ATE added after the run). A
+        folder without ``metrics.json`` holds no complete run (the file is written last): an
+        :class:`InputError`, not a new file that would mark it complete."""
+        if not self.metrics_path.is_file():
+            raise InputError(f"{self.out_dir}: no {METRICS_FILE}: not the output of a completed run "
+                             f"(metrics.json is written last), so there is nothing to update")
         m = self.read_metrics()
         m.update(partial)
         return self.write_metrics(m)
