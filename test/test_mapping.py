@@ -354,7 +354,7 @@ def test_passive_store_round_trip_is_bit_exact_through_disk(tmp_path):
     store.put(gm.index(torch.arange(0, 150)), poses)
     store.put(gm.index(torch.arange(150, 300)), poses)
     assert store.num_spilled_chunks == 2 and store.memory_bytes == 0
-    assert len(list((tmp_path / "spill").glob("*.npz"))) == 2
+    assert len(list((tmp_path / "spill").rglob("*.npz"))) == 2
     assert store.num_gaussians == 300
     # take owner 2 only: the rest stays
     got2 = store.take(lambda o: o == 2, poses)
@@ -364,7 +364,39 @@ def test_passive_store_round_trip_is_bit_exact_through_disk(tmp_path):
     back = GaussianMap.concat([got2, rest])
     _assert_maps_equal(_canon(back), _canon(gm))
     store.close()
-    assert not list((tmp_path / "spill").glob("*.npz"))
+    assert not list((tmp_path / "spill").rglob("*.npz"))
+
+
+def test_stores_sharing_a_spill_dir_and_a_lost_chunk_file(tmp_path):
+    from vings_core.errors import ConfigError
+    gm = _random_map(300, sh_degree=1)
+    poses = {1: np.eye(4), 2: np.eye(4), 3: np.eye(4)}
+    a = PassiveStore(memory_budget_bytes=0, spill_dir=str(tmp_path / "spill"))
+    b = PassiveStore(memory_budget_bytes=0, spill_dir=str(tmp_path / "spill"))
+    a.put(gm.index(torch.arange(0, 100)), poses)
+    b.put(gm.index(torch.arange(100, 200)), poses)
+    a.put(gm.index(torch.arange(200, 300)), poses)
+    assert len(a.all(poses)) == 200 and len(b.all(poses)) == 100   # no file shared
+    b.close()                                   # removes b's files only
+    assert len(a.all(poses)) == 200
+    # one of a's chunk files disappears: reported, those Gaussians dropped, the rest still loads
+    a.chunks[0].path.unlink()
+    rest = a.take(lambda o: np.ones(len(o), bool), poses)
+    assert len(rest) == 100 and a.lost_total == 100 and a.num_gaussians == 0
+    a.close()
+    f = tmp_path / "afile"
+    f.write_text("x")
+    with pytest.raises(ConfigError, match="mapping.spill_dir"):
+        PassiveStore(memory_budget_bytes=0, spill_dir=str(f))
+
+
+def test_damaged_checkpoint_is_an_input_error(tmp_path):
+    from vings_core.errors import InputError
+    for name, data in (("empty.ckpt", b""), ("trunc.ckpt", b"PK\x03\x04garbage")):
+        p = tmp_path / name
+        p.write_bytes(data)
+        with pytest.raises(InputError, match="not a VINGS map checkpoint"):
+            Mapper.load_checkpoint(p)
 
 
 def test_passive_gaussians_follow_pose_changes_of_their_keyframe():

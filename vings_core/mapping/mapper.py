@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import io
 import json
+import zipfile
 import math
 import os
 import time
@@ -324,8 +325,8 @@ class Mapper:
         try:
             z = np.load(path, allow_pickle=False)
             meta = json.loads(bytes(z["meta"]).decode())
-        except (OSError, ValueError, KeyError) as e:
-            raise InputError(f"{path}: not a VINGS map checkpoint ({e})") from None
+        except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as e:
+            raise InputError(f"{path}: not a VINGS map checkpoint ({type(e).__name__}: {e})") from None
         if meta.get("version") != CHECKPOINT_VERSION:
             raise InputError(f"{path}: checkpoint version {meta.get('version')} not supported")
         cfg = config if config is not None else config_from_dict(MapperConfig, meta["config"], f"{path}: config")

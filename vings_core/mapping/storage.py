@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import itertools
 import os
+import zipfile
 import shutil
 import tempfile
 from dataclasses import dataclass, field
@@ -24,8 +25,8 @@ from typing import Callable, Optional
 import numpy as np
 import torch
 
-from ..errors import InputError
-from ..util import atomic_write
+from ..errors import ConfigError, InputError
+from ..util import atomic_write, log
 from .gaussians import ALL_FIELDS, GaussianMap
 
 
@@ -87,8 +88,10 @@ class PassiveStore:
     """Host-memory store of inactive Gaussians, spilling whole chunks to ``.npz`` files.
 
     ``memory_budget_bytes``: in-memory size above which the oldest chunks are written to disk;
-    ``spill_dir``: folder for those files (None = a private temporary folder, removed by
-    :meth:`close`).
+    ``spill_dir``: folder for those files: the store spills into its own sub-folder there (None =
+    a private temporary folder); :meth:`close` removes that sub-folder. A chunk file found missing
+    or damaged when read is reported and its Gaussians dropped (``lost_total``); the rest of the
+    map stays usable.
     """
 
     memory_budget_bytes: int
@@ -98,9 +101,20 @@ class PassiveStore:
     _own_dir: bool = False
     spilled_total: int = 0                  # number of chunk writes so far
     loaded_total: int = 0                   # number of chunk reads so far
+    lost_total: int = 0                     # Gaussians of chunk files found missing or corrupt
 
     def __post_init__(self) -> None:
-        self._dir: Optional[Path] = Path(self.spill_dir) if self.spill_dir else None
+        # each store spills into a private folder (inside ``spill_dir`` when given), so stores
+        # sharing a ``spill_dir`` never read, overwrite or delete each other's files
+        self._dir: Optional[Path] = None
+        if self.spill_dir:
+            try:
+                Path(self.spill_dir).mkdir(parents=True, exist_ok=True)
+                self._dir = Path(tempfile.mkdtemp(prefix="vings_passive_", dir=self.spill_dir))
+            except OSError as e:
+                raise ConfigError(f"mapping.spill_dir {self.spill_dir!r}: cannot create a folder "
+                                  f"there ({e.strerror or e})") from None
+            self._own_dir = True
 
     # ---------------------------------------------------------------- accounting
     @property
@@ -147,12 +161,19 @@ class PassiveStore:
         """
         out = []
         kept = []
+        lost = []
         for c in self.chunks:
             sel_owner = np.asarray(want_owner(c.owners), dtype=bool)
             if not sel_owner.any():
                 kept.append(c)
                 continue
-            arrays = self._load(c)
+            try:
+                arrays = self._load(c)
+            except InputError as e:   # the file is gone or damaged: report, drop, keep the rest
+                log.error("%s: %d passive Gaussians lost", e, c.n)
+                self.lost_total += c.n
+                lost.append(c)
+                continue
             rows = np.isin(arrays["kf_id"], c.owners[sel_owner])
             part = {k: v[rows] for k, v in arrays.items()}
             gm = GaussianMap.from_numpy(part)
@@ -173,6 +194,8 @@ class PassiveStore:
         if remove:
             self.chunks = kept
             self._spill_if_needed()
+        elif lost:
+            self.chunks = [c for c in self.chunks if all(c is not x for x in lost)]
         if not out:
             return None
         return GaussianMap.concat(out)
@@ -200,7 +223,6 @@ class PassiveStore:
         if self._dir is None:
             self._dir = Path(tempfile.mkdtemp(prefix="vings_passive_"))
             self._own_dir = True
-        self._dir.mkdir(parents=True, exist_ok=True)
         return self._dir
 
     def _spill_if_needed(self) -> None:
@@ -225,8 +247,12 @@ class PassiveStore:
             return c.arrays
         if c.path is None or not c.path.exists():
             raise InputError(f"passive Gaussian chunk file missing: {c.path}")
-        with np.load(c.path) as z:
-            arrays = {k: z[k] for k in ALL_FIELDS}
+        try:
+            with np.load(c.path) as z:
+                arrays = {k: z[k] for k in ALL_FIELDS}
+        except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as e:
+            raise InputError(f"passive Gaussian chunk file {c.path} is damaged "
+                             f"({type(e).__name__}: {e})") from None
         self.loaded_total += 1
         return arrays
 
