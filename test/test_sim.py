@@ -482,6 +482,16 @@ def test_generate_replaces_previous_output_only(tmp_path):
     with pytest.raises(ConfigError, match="not a simulator output"):
         generate("room", foreign, frames=2, width=32, height=24, mcap=False)
     assert (foreign / "notes.txt").read_text() == "keep me"
+    # a run's outputs kept inside an earlier simulator output would be deleted: refused
+    (out / "run1").mkdir()
+    (out / "run1" / "metrics.json").write_text("{}")
+    with pytest.raises(ConfigError, match="run1.*would delete"):
+        generate("room", out, frames=2, width=32, height=24, mcap=False)
+    assert (out / "run1" / "metrics.json").exists()
+    f = tmp_path / "afile"
+    f.write_text("x")
+    with pytest.raises(ConfigError, match="cannot write the simulator output"):
+        generate("room", f / "sub", frames=2, width=32, height=24, mcap=False)
 
 
 @pytest.mark.parametrize("kw,match", [

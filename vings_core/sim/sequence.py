@@ -138,7 +138,14 @@ def _write_csv(path: Path, header: str, stamps: np.ndarray, values: Optional[np.
     path.write_text("\n".join(lines) + "\n")
 
 
+def _is_sim_entry(name: str) -> bool:
+    """Names the simulator writes into its output folder."""
+    return name in ("mav0", SUMMARY_NAME) or name.endswith((".mcap", ".calib.yaml"))
+
+
 def _check_out_dir(out: Path) -> None:
+    """``out`` may be absent, empty, or an earlier simulator output holding nothing else: it is
+    replaced whole, so anything else in it (a run's outputs, notes) would be deleted."""
     if out.exists():
         if not out.is_dir():
             raise ConfigError(f"{out}: output path exists and is not a folder")
@@ -146,6 +153,11 @@ def _check_out_dir(out: Path) -> None:
         if entries and SUMMARY_NAME not in entries:
             raise ConfigError(f"{out}: folder exists, is not empty and is not a simulator output "
                               f"(no {SUMMARY_NAME}); choose another --out or remove it")
+        extra = sorted(e for e in entries if not _is_sim_entry(e))
+        if extra:
+            raise ConfigError(f"{out}: this simulator output also holds {', '.join(extra[:5])}"
+                              f"{' ...' if len(extra) > 5 else ''}, which replacing it would delete; "
+                              f"move them or choose another --out")
 
 
 def generate(scene_name: str, out_dir, frames: Optional[int] = None, width: int = 376,
@@ -196,8 +208,13 @@ def generate(scene_name: str, out_dir, frames: Optional[int] = None, width: int 
     T_wc = scene.T_wc(t_frames)
 
     tmp = out.parent / f".{out.name}.tmp-{os.getpid()}"
-    if tmp.exists():
-        shutil.rmtree(tmp)
+    try:
+        if tmp.exists():
+            shutil.rmtree(tmp)
+        out.parent.mkdir(parents=True, exist_ok=True)
+        tmp.mkdir()
+    except OSError as e:
+        raise ConfigError(f"{out}: cannot write the simulator output there ({e.strerror or e})") from None
     try:
         mav0 = tmp / "mav0"
         dirs = {k: mav0 / k for k in ("cam0", "imu0", "state_groundtruth_estimate0", "depth0", "mask0")}
