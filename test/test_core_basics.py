@@ -239,3 +239,12 @@ def test_np_pose_compose_stays_rigid_over_long_chains():
     assert abs(np.linalg.det(R) - 1.0) < 1e-12
     np.testing.assert_allclose(T, P, atol=1e-9)
     np.testing.assert_array_equal(T[3], [0, 0, 0, 1])
+
+
+def test_launch_never_overwrites_a_recording(tmp_path):
+    from vings_ros.launch import Launcher, LaunchOptions
+    rec = tmp_path / "rec.mcap"
+    rec.write_bytes(b"earlier recording")
+    with pytest.raises(ConfigError, match="recordings are never overwritten"):
+        Launcher(LaunchOptions(record=str(rec)))
+    assert rec.read_bytes() == b"earlier recording"

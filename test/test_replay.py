@@ -499,3 +499,14 @@ def test_cli_reports_bad_arguments_in_one_line(tmp_path, capsys, recording):
     assert "--rate must be >= 0" in capsys.readouterr().err
     assert main(["replay", str(tmp_path), "--topics", "image"]) == 2
     assert "key=/topic" in capsys.readouterr().err
+    for args, msg in ((["--topics", "image=/1bad"], "absolute ROS name"),
+                      (["--topics", "image=/a//b"], "absolute ROS name"),
+                      (["--topics", "image=/x,imu=/x"], "would both publish on /x"),
+                      (["--start", "nan"], "--start must be a finite"),
+                      (["--duration", "inf"], "--duration must be a finite"),
+                      (["--imu-lead", "inf"], "--imu-lead must be a finite"),
+                      (["--startup-timeout", "nan"], "--startup-timeout >= 0"),
+                      (["--publish-log", str(tmp_path / "nofolder" / "x.csv")], "--publish-log")):
+        assert main(["replay", str(recording[0]), "--no-wait", *args]) == 2, args
+        err = capsys.readouterr().err
+        assert msg in err and "Traceback" not in err, (args, err)

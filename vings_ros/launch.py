@@ -68,6 +68,9 @@ class Launcher:
             raise ConfigError(f"{opt.params_file}: params file not found")
         if opt.record and not str(opt.record).endswith(".mcap"):
             raise ConfigError(f"--record {opt.record}: the output must be a .mcap file")
+        if opt.record and Path(opt.record).exists():
+            raise ConfigError(f"--record {opt.record}: the file exists; recordings are never "
+                              f"overwritten, choose a new name")
         if opt.checkpoint:
             opt.extra_params.setdefault("ros.checkpoint_path", str(Path(opt.checkpoint).resolve()))
         self.env = ros_environment(opt.domain_id, log_dir=opt.log_dir)

@@ -57,6 +57,8 @@ class RecorderNode(Node):
         self.out = Path(out_path).resolve()
         if self.out.suffix != ".mcap":
             raise ValueError(f"--record {out_path}: the output must be a .mcap file")
+        if self.out.exists():
+            raise ValueError(f"--record {out_path}: the file exists; recordings are never overwritten")
         self.out.parent.mkdir(parents=True, exist_ok=True)
         self.tmpdir = Path(tempfile.mkdtemp(prefix=f".{self.out.name}.", dir=self.out.parent))
         self.bagdir = self.tmpdir / self.out.stem
@@ -81,6 +83,10 @@ class RecorderNode(Node):
     def shutdown(self) -> None:
         with self.lock:
             self.writer.close()
+        if self.out.exists():   # appeared while recording: keep both, never overwrite
+            self.get_logger().error(f"{self.out} appeared while recording; the recording stays in "
+                                    f"{self.bagdir}")
+            return
         os.replace(self.bagdir / f"{self.bagdir.name}.mcap", self.out)
         shutil.rmtree(self.tmpdir, ignore_errors=True)
         total = sum(self.counts.values())

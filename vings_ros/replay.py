@@ -37,9 +37,12 @@ from __future__ import annotations
 
 import logging
 import math
+import os
+import re
 import sys
 import time
 from dataclasses import asdict, dataclass, field
+from pathlib import Path
 from typing import Callable, Optional, TextIO
 
 from vings_core.errors import ConfigError, VingsError
@@ -84,24 +87,46 @@ class ReplayOptions:
     def validate(self) -> None:
         if not (self.rate >= 0 and math.isfinite(self.rate)):
             raise ConfigError(f"--rate must be >= 0 (0 = as fast as possible), got {self.rate}")
-        if self.start_s < 0:
-            raise ConfigError(f"--start must be >= 0 s, got {self.start_s}")
-        if self.duration_s is not None and self.duration_s <= 0:
-            raise ConfigError(f"--duration must be > 0 s, got {self.duration_s}")
-        if not self.imu_lead_s >= 0:
-            raise ConfigError(f"--imu-lead must be >= 0 s, got {self.imu_lead_s}")
-        if self.ack_timeout_s <= 0 or self.startup_timeout_s < 0:
-            raise ConfigError("--ack-timeout must be > 0 and --startup-timeout >= 0")
+        if not (self.start_s >= 0 and math.isfinite(self.start_s)):
+            raise ConfigError(f"--start must be a finite number of seconds >= 0, got {self.start_s}")
+        if self.duration_s is not None and not (self.duration_s > 0 and math.isfinite(self.duration_s)):
+            raise ConfigError(f"--duration must be a finite number of seconds > 0, got {self.duration_s}")
+        if not (self.imu_lead_s >= 0 and math.isfinite(self.imu_lead_s)):
+            raise ConfigError(f"--imu-lead must be a finite number of seconds >= 0, got {self.imu_lead_s}")
+        if not (self.ack_timeout_s > 0 and self.startup_timeout_s >= 0):   # NaN fails both
+            raise ConfigError(f"--ack-timeout must be > 0 and --startup-timeout >= 0, got "
+                              f"{self.ack_timeout_s} and {self.startup_timeout_s}")
         unknown = set(self.topics) - set(T.REPLAY_TOPICS)
         if unknown:
             raise ConfigError(f"--topics: unknown key(s) {sorted(unknown)}; known: "
                               f"{', '.join(T.REPLAY_TOPICS)}")
         for k, v in self.topics.items():
-            if not isinstance(v, str) or not v.startswith("/") or " " in v:
-                raise ConfigError(f"--topics: topic for {k!r} must be an absolute ROS name, got {v!r}")
+            if not isinstance(v, str) or not _valid_topic(v):
+                raise ConfigError(f"--topics: topic for {k!r} must be an absolute ROS name "
+                                  f"(/ then tokens of letters, digits and _ not starting with a "
+                                  f"digit, separated by single /), got {v!r}")
         full = dict(T.REPLAY_TOPICS)
         full.update(self.topics)
+        seen: dict = {}
+        for k, v in full.items():
+            if v in seen:
+                raise ConfigError(f"--topics: {seen[v]!r} and {k!r} would both publish on {v} (the "
+                                  f"message types differ); give each its own topic")
+            seen[v] = k
+        if self.publish_log:    # found before the replay, not after it
+            parent = Path(self.publish_log).expanduser().absolute().parent
+            if not parent.is_dir() or not os.access(parent, os.W_OK):
+                raise ConfigError(f"--publish-log {self.publish_log}: folder {parent} does not exist "
+                                  f"or is not writable")
         self.topics = full
+
+
+_TOPIC_RE = re.compile(r"^(/[A-Za-z_][A-Za-z0-9_]*)+$")
+
+
+def _valid_topic(name: str) -> bool:
+    """Absolute ROS 2 topic name (the subset rclpy accepts: no ``~``, ``{}`` substitutions)."""
+    return bool(_TOPIC_RE.match(name))
 
 
 def parse_topics(spec: str) -> dict:
