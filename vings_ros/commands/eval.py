@@ -125,8 +125,8 @@ def _parse_lengths(text: Optional[str]) -> Optional[list[float]]:
         vals = [float(v) for v in text.split(",") if v.strip()]
     except ValueError:
         raise InputError(f"--rpe-lengths: expected comma-separated metres, got {text!r}") from None
-    if not vals or any(not (v > 0) for v in vals):
-        raise InputError(f"--rpe-lengths: lengths must be positive, got {text!r}")
+    if not vals or any(not (0 < v < float("inf")) for v in vals):
+        raise InputError(f"--rpe-lengths: lengths must be positive and finite, got {text!r}")
     return vals
 
 
@@ -137,8 +137,8 @@ def eval_trajectory_cli(args: argparse.Namespace) -> dict:
 
     if not args.gt:
         raise InputError("--gt is required to evaluate a trajectory (TUM file or dataset path)")
-    if not (args.max_dt_ms >= 0):
-        raise InputError(f"--max-dt-ms must be >= 0, got {args.max_dt_ms}")
+    if not (0 <= args.max_dt_ms < float("inf")):
+        raise InputError(f"--max-dt-ms must be finite and >= 0, got {args.max_dt_ms}")
     est_path, run_dir = _resolve_estimate(args.estimate)
     est = read_tum(est_path)
     gt, info = load_ground_truth(args.gt, args.gt_frame, args.calib, args.image_topic, args.gt_topic)
