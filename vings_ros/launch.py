@@ -120,6 +120,13 @@ class Launcher:
         if removed:
             self._say(f"removed {len(removed)} stale Fast DDS shared-memory files")
 
+    def _report_stranded_recording(self) -> None:
+        """A recorder that died keeps what it wrote in its hidden working folder: say where."""
+        out = Path(str(self.opt.record)).resolve()
+        for d in sorted(out.parent.glob(f".{out.name}.*")):
+            for f in d.rglob("*.mcap"):
+                self._say(f"the recorder's partial recording is in {f} (not moved to {out})")
+
     def run(self) -> int:
         """Start, watch until a node dies or SIGINT/SIGTERM; returns the exit code."""
         stop_requested = []
@@ -136,6 +143,8 @@ class Launcher:
                 if dead is not None:
                     rc = self.procs[dead].returncode
                     self._say(f"{dead} exited with code {rc}; stopping the graph")
+                    if dead == "recorder_node":
+                        self._report_stranded_recording()
                     code = 1
                     break
                 time.sleep(0.2)
