@@ -4,15 +4,7 @@ from __future__ import annotations
 import argparse
 import json
 
-
-def _at_least_one(text: str) -> int:
-    try:
-        v = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
-    if v < 1:
-        raise argparse.ArgumentTypeError(f"must be >= 1, got {v}")
-    return v
+from .argtypes import int_at_least
 
 
 def add_source_arguments(p: argparse.ArgumentParser) -> None:
@@ -27,7 +19,7 @@ def add_source_arguments(p: argparse.ArgumentParser) -> None:
     g.add_argument("--width", type=int, help="working width in pixels (default: native)")
     g.add_argument("--height", type=int, help="working height in pixels (default: native)")
     g.add_argument("--no-undistort", action="store_true", help="keep lens distortion")
-    g.add_argument("--max-frames", type=_at_least_one, help="use at most this many frames")
+    g.add_argument("--max-frames", type=int_at_least(1), help="use at most this many frames")
 
 
 def source_options(args: argparse.Namespace):

@@ -4,15 +4,7 @@ from __future__ import annotations
 import argparse
 import json
 
-
-def _seed(text: str) -> int:
-    try:
-        v = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
-    if v < 0:
-        raise argparse.ArgumentTypeError(f"must be >= 0, got {v}")
-    return v
+from .argtypes import int_at_least
 
 
 def register(subparsers) -> None:
@@ -36,7 +28,7 @@ def register(subparsers) -> None:
     p.add_argument("--fps", type=float, default=20.0, help="camera rate (Hz, divides 200)")
     p.add_argument("--width", type=int, default=376, help="image width (px)")
     p.add_argument("--height", type=int, default=240, help="image height (px)")
-    p.add_argument("--seed", type=_seed, default=0, help="seed of scene, motion and IMU noise (>= 0)")
+    p.add_argument("--seed", type=int_at_least(0), default=0, help="seed of scene, motion and IMU noise (>= 0)")
     p.add_argument("--no-noise", action="store_true", help="exact IMU: no noise, zero biases")
     p.add_argument("--no-mcap", action="store_true", help="skip the ROS 2 MCAP")
     p.add_argument("--progress", action="store_true", help="show a progress bar")
