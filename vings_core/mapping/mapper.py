@@ -17,10 +17,10 @@ from __future__ import annotations
 
 import io
 import json
-import zipfile
 import math
 import os
 import time
+import zipfile
 from dataclasses import asdict, replace
 from pathlib import Path
 from typing import Optional

@@ -15,9 +15,9 @@ from __future__ import annotations
 
 import itertools
 import os
-import zipfile
 import shutil
 import tempfile
+import zipfile
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Optional
