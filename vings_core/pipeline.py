@@ -535,6 +535,10 @@ class SlamRunner:
         if len(kf_traj) == 0:
             log.warning("no keyframe was mapped (%d frames; the front end did not initialise: too "
                         "few frames or too little camera motion): the map is empty", n_frames)
+        elif self.mapper.num_gaussians == 0:
+            log.warning("the map is empty: none of the %d keyframes had usable depth (%d frames: "
+                        "too few, or too little camera motion, for confident depth)", len(kf_traj),
+                        n_frames)
         self.out.write_trajectory(traj)
         self.out.write_keyframes(kf_traj)
         self.mapper.save_ply(self.out.map_path)

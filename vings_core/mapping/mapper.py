@@ -33,7 +33,7 @@ from ..errors import InputError
 from ..geometry import np_project_rotation, pose_inverse, rotmat_to_quat, se3_exp
 from ..render import rasterize_2dgs
 from ..types import CameraModel, Keyframe
-from ..util import atomic_write
+from ..util import atomic_write, log
 from . import scores as S
 from .config import MapperConfig
 from .gaussians import ALL_FIELDS, PARAM_FIELDS, GaussianMap, quat_multiply
@@ -434,6 +434,9 @@ class Mapper:
         T_wc = kf.T_wc
         T_cw = pose_inverse(T_wc)
         usable = usable_depth_mask(kf, cfg.max_depth, cfg.max_depth_rel_std)
+        if not bool(usable.any()):
+            log.warning("keyframe %d: no pixel has usable depth (missing, or too uncertain: e.g. too "
+                        "little parallax yet); no Gaussians from it", int(kf.stamp_ns))
         depth = kf.depth
         # pixels that may seed Gaussians: usable depth, and (fill_unknown_depth) pixels whose depth is
         # unknown (dropped as uncertain, not known empty) at depth interpolated from the usable ones
