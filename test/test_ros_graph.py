@@ -148,6 +148,11 @@ def test_launch_replay_backpressure_end_to_end(synthetic_mcap, tmp_path):
     assert len(expected) >= len(stamps) // 2, "front end initialised too late"
     assert renders, "no rendered image received"
     assert ckpt.exists(), "mapper wrote no checkpoint on shutdown"
+    from vings_core.mapping import Mapper
+    m = Mapper.load_checkpoint(ckpt)     # the ROS path built a map, not only keyframe poses
+    assert len(m.keyframe_poses()) >= 2 and m.num_gaussians > 1000, (len(m.keyframe_poses()),
+                                                                     m.num_gaussians)
+    m.close()
     time.sleep(1.0)
     assert not _procs_with_env("VINGS_TEST_MARK", str(domain)), "graph processes left running"
     # files that appeared during the test and that no live process holds (other tests may run)
