@@ -9,6 +9,7 @@ from builtin_interfaces.msg import Time
 from std_msgs.msg import Header
 
 from vings_core.errors import InputError
+from vings_core.trajectory_io import sec_nsec_to_ns
 
 NS_PER_S = 1_000_000_000
 _INT32_MIN, _INT32_MAX = -(2 ** 31), 2 ** 31 - 1
@@ -30,10 +31,7 @@ def ns_to_time(stamp_ns: int, where: str = "stamp") -> Time:
 
 def time_to_ns(t: Time, where: str = "stamp") -> int:
     """``builtin_interfaces/Time`` (or anything with ``sec``/``nanosec``) -> ``int`` nanoseconds."""
-    sec, nanosec = int(t.sec), int(t.nanosec)
-    if not 0 <= nanosec < NS_PER_S:
-        raise InputError(f"{where}: nanosec field {nanosec} is outside [0, 1e9)")
-    return sec * NS_PER_S + nanosec
+    return sec_nsec_to_ns(t.sec, t.nanosec, where)
 
 
 def make_header(stamp_ns: int, frame_id: str, where: str = "header") -> Header:

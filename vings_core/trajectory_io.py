@@ -22,6 +22,16 @@ def stamp_ns_to_str(stamp_ns: int) -> str:
     return f"{sign}{s // 1_000_000_000}.{s % 1_000_000_000:09d}"
 
 
+def sec_nsec_to_ns(sec: int, nsec: int, where: str) -> int:
+    """ROS time ``(sec, nanosec)`` -> int nanoseconds; ``nanosec`` outside ``[0, 1e9)`` (a corrupt
+    message or a writer bug) is an :class:`InputError` naming ``where``."""
+    sec, nsec = int(sec), int(nsec)
+    if not 0 <= nsec < 1_000_000_000:
+        raise InputError(f"{where} nanoseconds {nsec} outside [0, 1e9) (sec {sec}): corrupt message "
+                         f"or a writer bug")
+    return sec * 1_000_000_000 + nsec
+
+
 def str_to_stamp_ns(text: str) -> int:
     """Seconds string (any number of decimals, or exponent form) -> int nanoseconds, exact.
 

@@ -5,10 +5,16 @@ import json
 import logging
 import os
 import tempfile
+import zipfile
 from pathlib import Path
 from typing import Any, Callable
 
+from .errors import VingsError
+
 log = logging.getLogger("vings")
+
+#: what reading a missing, truncated or foreign ``.npz`` (np.load) can raise
+NPZ_READ_ERRORS = (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile)
 
 
 def _process_umask() -> int:
@@ -27,8 +33,6 @@ def atomic_write(path: str | os.PathLike, write: Callable[[str], None]) -> None:
     mode a plain ``open`` would give it (``0666`` less the umask; temporary files are ``0600``). An
     ``OSError`` (folder not writable, disk full) becomes a :class:`VingsError` naming ``path``.
     """
-    from .errors import VingsError
-
     path = Path(path)
     tmp = None
     try:

@@ -13,7 +13,6 @@ Every file is written atomically (temp file + rename).
 from __future__ import annotations
 
 import json
-import logging
 import math
 import os
 import re
@@ -28,9 +27,7 @@ import numpy as np
 from ..errors import InputError
 from ..trajectory_io import write_tum
 from ..types import Trajectory
-from ..util import atomic_write_bytes, atomic_write_text
-
-log = logging.getLogger("vings")
+from ..util import atomic_write_bytes, atomic_write_text, log
 
 TRAJECTORY_FILE = "trajectory.tum"
 KEYFRAMES_FILE = "keyframes.tum"
@@ -154,8 +151,7 @@ class RunOutput:
         except OSError as e:
             raise InputError(f"{self.out_dir}: cannot write to the output folder "
                              f"({e.strerror or e})") from None
-        old = [p for p in (self.metrics_path, self.trajectory_path, self.map_path) if p.exists()]
-        if old:
+        if any(p.exists() for p in (self.metrics_path, self.trajectory_path, self.map_path)):
             log.warning("%s holds the outputs of a previous run; they are replaced", self.out_dir)
         try:
             if self.metrics_path.exists():

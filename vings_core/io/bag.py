@@ -28,6 +28,7 @@ import numpy as np
 
 from ..errors import InputError
 from ..geometry import np_quat_to_rotmat
+from ..trajectory_io import sec_nsec_to_ns
 from ..types import CameraModel, Frame
 from .base import SourceOptions
 from .calib_yaml import (CalibParts, camera_info_intrinsics, distortion_model_name, make_camera,
@@ -64,19 +65,12 @@ def header_stamp_ns(raw: bytes, ros1: bool, where: str) -> int:
     else:  # CDR: 4-byte encapsulation (byte 1: 1 = little endian), int32 sec, uint32 nanosec
         e = "<" if raw[1] == 1 else ">"
         sec, nsec = struct.unpack_from(e + "iI", raw, 4)
-    return _checked_ns(sec, nsec, where)
-
-
-def _checked_ns(sec: int, nsec: int, where: str) -> int:
-    if not 0 <= int(nsec) < 1_000_000_000:
-        raise InputError(f"{where}: header stamp nanoseconds {int(nsec)} outside [0, 1e9) "
-                         f"(sec {int(sec)}): corrupt message or a writer bug")
-    return int(sec) * 1_000_000_000 + int(nsec)
+    return sec_nsec_to_ns(sec, nsec, f"{where}: header stamp")
 
 
 def _stamp_of(msg, where: str) -> int:
     st = msg.header.stamp
-    return _checked_ns(st.sec, getattr(st, "nanosec", getattr(st, "nsec", 0)), where)
+    return sec_nsec_to_ns(st.sec, getattr(st, "nanosec", getattr(st, "nsec", 0)), f"{where}: header stamp")
 
 
 def _field(msg, *names):

@@ -20,7 +20,6 @@ import json
 import math
 import os
 import time
-import zipfile
 from dataclasses import asdict, replace
 from pathlib import Path
 from typing import Optional
@@ -33,7 +32,7 @@ from ..errors import InputError
 from ..geometry import np_project_rotation, pose_inverse, rotmat_to_quat, se3_exp
 from ..render import rasterize_2dgs
 from ..types import CameraModel, Keyframe
-from ..util import atomic_write, log
+from ..util import NPZ_READ_ERRORS, atomic_write, log
 from . import scores as S
 from .config import MapperConfig
 from .gaussians import ALL_FIELDS, PARAM_FIELDS, GaussianMap, quat_multiply
@@ -325,7 +324,7 @@ class Mapper:
         try:
             z = np.load(path, allow_pickle=False)
             meta = json.loads(bytes(z["meta"]).decode())
-        except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as e:
+        except NPZ_READ_ERRORS as e:
             raise InputError(f"{path}: not a VINGS map checkpoint ({type(e).__name__}: {e})") from None
         if meta.get("version") != CHECKPOINT_VERSION:
             raise InputError(f"{path}: checkpoint version {meta.get('version')} not supported")

@@ -17,7 +17,6 @@ import itertools
 import os
 import shutil
 import tempfile
-import zipfile
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Optional
@@ -26,7 +25,7 @@ import numpy as np
 import torch
 
 from ..errors import ConfigError, InputError
-from ..util import atomic_write, log
+from ..util import NPZ_READ_ERRORS, atomic_write, log
 from .gaussians import ALL_FIELDS, GaussianMap
 
 
@@ -161,7 +160,7 @@ class PassiveStore:
         """
         out = []
         kept = []
-        lost = []
+        lost = False
         for c in self.chunks:
             sel_owner = np.asarray(want_owner(c.owners), dtype=bool)
             if not sel_owner.any():
@@ -172,7 +171,7 @@ class PassiveStore:
             except InputError as e:   # the file is gone or damaged: report, drop, keep the rest
                 log.error("%s: %d passive Gaussians lost", e, c.n)
                 self.lost_total += c.n
-                lost.append(c)
+                lost = True
                 continue
             rows = np.isin(arrays["kf_id"], c.owners[sel_owner])
             part = {k: v[rows] for k, v in arrays.items()}
@@ -191,11 +190,10 @@ class PassiveStore:
                                        int(sum(a.nbytes for a in ra.values())), o, keep_T, ra))
             else:
                 kept.append(c)
-        if remove:
+        if remove or lost:       # kept: every chunk but the lost ones (and, if remove, the taken rows)
             self.chunks = kept
+        if remove:
             self._spill_if_needed()
-        elif lost:
-            self.chunks = [c for c in self.chunks if all(c is not x for x in lost)]
         if not out:
             return None
         return GaussianMap.concat(out)
@@ -250,7 +248,7 @@ class PassiveStore:
         try:
             with np.load(c.path) as z:
                 arrays = {k: z[k] for k in ALL_FIELDS}
-        except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as e:
+        except NPZ_READ_ERRORS as e:
             raise InputError(f"passive Gaussian chunk file {c.path} is damaged "
                              f"({type(e).__name__}: {e})") from None
         self.loaded_total += 1
