@@ -514,6 +514,87 @@ def test_checkpoint_round_trip_is_bit_exact(room_small, tmp_path):
     _assert_maps_equal(m.gm, m2.gm)
 
 
+def _passive_mapper(room_small, **kw):
+    """Three keyframes with a small tau, so earlier keyframes' Gaussians go passive."""
+    cam, frames = room_small
+    cfg = MapperConfig(points_per_keyframe=800, delta_k=1, tau=0.05, iters_per_keyframe=2, sample_ratio=1.0,
+                       score_manager=False, history_ratio=0.0, **kw)
+    m = Mapper(cfg)
+    for i in (0, 2, 4):
+        m.add_keyframe(frames[i])
+        m.train()
+    assert m.num_passive > 0
+    return m, frames
+
+
+def test_checkpoint_resume_is_exact_with_a_pending_passive_pose_change(room_small, tmp_path):
+    """A pose change of a keyframe whose Gaussians are passive is applied to them when they
+    return; a checkpoint taken in between must resume with exactly the same map afterwards (saving
+    them already moved would round the next change differently)."""
+    m, frames = _passive_mapper(room_small)
+    s0 = frames[0].stamp_ns
+    assert s0 in m.passive.owners().tolist()
+    T0 = m.keyframe_poses()[s0]
+    m.set_keyframe_poses({s0: T0 @ np_se3_exp(np.array([0.01, 0, 0, 0, 0.02, 0]))})   # pending
+    m.save_checkpoint(tmp_path / "c.npz")
+    m2 = Mapper.load_checkpoint(tmp_path / "c.npz")
+    _assert_maps_equal(m.all_gaussians(), m2.all_gaussians())
+    T1 = m.keyframe_poses()[s0]
+    for mm in (m, m2):
+        mm.set_keyframe_poses({s0: T1 @ np_se3_exp(np.array([0.0, 0.01, 0, 0.03, 0, 0]))})
+    _assert_maps_equal(m.all_gaussians(), m2.all_gaussians())
+    for mm in (m, m2):
+        mm.update_tiers(T1)
+    _assert_maps_equal(m.gm, m2.gm)
+
+
+def test_single_refinement_leaves_passive_gaussians_in_place(room_small):
+    """``single`` moves only cameras: Gaussians of a refined keyframe stay put, active or passive
+    (its passive ones must not follow the pose change when they come back)."""
+    m, frames = _passive_mapper(room_small, refine_mode="single")
+    before_a = m.gm.clone()
+    before_p = m.passive.all(m._poses)
+    P0 = m.keyframe_poses()
+    m.refine_poses(20, mode="single")
+    moved = [s for s, T in m.keyframe_poses().items() if not np.array_equal(T, P0[s])]
+    assert set(moved) & set(before_p.kf_id.tolist())       # a refined keyframe owns passive Gaussians
+    _assert_maps_equal(before_a, m.gm)
+    _assert_maps_equal(before_p, m.passive.all(m._poses))
+
+
+def test_apply_rigid_rotates_the_quaternion_adam_moment():
+    """After ``q -> qR q`` the first moment must be the gradient of the same loss with respect to
+    the new quaternions (autograd through the inverse map)."""
+    from vings_core.mapping.gaussians import quat_multiply
+    gm = _random_map(20)
+    q = gm.quats.double().clone().requires_grad_(True)
+    c = torch.randn(20, 4, generator=torch.Generator().manual_seed(5), dtype=torch.float64)
+
+    def f(qq):
+        return (torch.sin(qq) * c).sum()
+    f(q).backward()
+    gm.m_quats.copy_(q.grad.float())
+    T = np_se3_exp(np.array([0.1, -0.2, 0.3, 0.4, -0.2, 0.3]))
+    gm.apply_rigid(torch.from_numpy(T))
+    from vings_core.geometry import rotmat_to_quat
+    qR = rotmat_to_quat(torch.from_numpy(T[:3, :3]))
+    qR_inv = qR * torch.tensor([-1.0, -1.0, -1.0, 1.0], dtype=torch.float64)
+    q_new = gm.quats.double().clone().requires_grad_(True)
+    f(quat_multiply(qR_inv.expand(20, 4), q_new)).backward()
+    assert torch.allclose(gm.m_quats.double(), q_new.grad, atol=1e-5)
+
+
+def test_ply_leaves_out_non_finite_splats(tmp_path):
+    from vings_core.mapping import write_ply
+    gm = _random_map(30)
+    gm.means[3, 0] = float("nan")
+    gm.log_scales[7, 1] = float("inf")
+    gm.quats[11] = 0.0
+    assert write_ply(tmp_path / "m.ply", gm) == 27
+    v = read_ply(tmp_path / "m.ply")
+    assert len(v["x"]) == 27 and all(np.isfinite(a).all() for a in v.values())
+
+
 def test_bad_checkpoint_and_bad_keyframes_give_clear_errors(tmp_path, room_small):
     cam, frames = room_small
     with pytest.raises(InputError, match="not found"):

@@ -332,6 +332,110 @@ def test_bad_inputs_raise_input_error():
         rasterize_2dgs(*g[:4], torch.zeros(30, 4, 3, dtype=F64), T_CW, CAM, sh_degree=2)
 
 
+def test_bad_poses_maps_and_types_raise_input_error():
+    g = _scene(30)
+    T_nan = T_CW.copy()
+    T_nan[0, 3] = np.nan
+    for kw, what in ((dict(T_cw=T_nan), "T_cw"), (dict(T_cw="eye"), "T_cw"),
+                     (dict(pose_delta=torch.full((6,), float("nan"), dtype=F64)), "pose_delta"),
+                     (dict(loss_map=np.full((CAM.height, CAM.width), np.nan)), "loss_map"),
+                     (dict(background=(np.nan, 0.0, 0.0)), "background"),
+                     (dict(background="abc"), "background")):
+        args = dict(T_cw=T_CW)
+        args.update(kw)
+        with pytest.raises(InputError, match=what):
+            rasterize_2dgs(*g, args.pop("T_cw"), CAM, **args)
+    with pytest.raises(InputError, match="sh_degree"):
+        rasterize_2dgs(*g[:4], torch.zeros(30, 4, 3, dtype=F64), T_CW, CAM, sh_degree=1.7)
+    # a pose delta given as a plain array, and SH coefficients as numpy, work as tensors do
+    d = np.array([0.01, 0.0, -0.02, 0.0, 0.01, 0.0])
+    a = rasterize_2dgs(*g, T_CW, CAM, pose_delta=d)
+    b = rasterize_2dgs(*g, T_CW, CAM, pose_delta=torch.tensor(d))
+    assert torch.equal(a.color, b.color)
+    sh = np.zeros((30, 4, 3))
+    sh[:, 0] = 0.3
+    assert torch.equal(rasterize_2dgs(*g[:4], sh, T_CW, CAM, sh_degree=1).color,
+                       rasterize_2dgs(*g[:4], torch.tensor(sh), T_CW, CAM, sh_degree=1).color)
+
+
+def test_camera_model_checks_its_numbers():
+    c = CameraModel(width=64.0, height=48.0, fx=50.0, fy=52.0, cx=31.3, cy=23.7)
+    assert (c.width, c.height) == (64, 48) and isinstance(c.width, int)
+    with pytest.raises(ValueError, match="width"):
+        CameraModel(width=64.5, height=48, fx=50.0, fy=52.0, cx=31.3, cy=23.7)
+    with pytest.raises(ValueError, match="cx"):
+        CameraModel(width=64, height=48, fx=50.0, fy=52.0, cx=float("nan"), cy=23.7)
+
+
+@pytest.mark.parametrize("bad", ["zero_quat", "nan_quat", "nan_scale", "inf_scale", "inf_opacity",
+                                 "nan_color"])
+def test_non_finite_gaussians_are_culled(bad):
+    """One broken Gaussian draws nothing and gets zero gradients; the others render and
+    differentiate exactly as without it (its NaN must not reach their transmittance)."""
+    g = _scene(30)
+    k = 20
+    broken = [t.clone() for t in g]
+    {"zero_quat": lambda: broken[1][k].zero_(), "nan_quat": lambda: broken[1][k].fill_(float("nan")),
+     "nan_scale": lambda: broken[2][k].fill_(float("nan")),
+     "inf_scale": lambda: broken[2][k].fill_(float("inf")),
+     "inf_opacity": lambda: broken[3][k:k + 1].fill_(float("inf")),
+     "nan_color": lambda: broken[4][k].fill_(float("nan"))}[bad]()
+    keep = torch.arange(30) != k
+    up = _upstream()
+    gb, ob = _grads(rasterize_2dgs, broken, up)
+    gk, ok = _grads(rasterize_2dgs, [t[keep] for t in g], up)
+    for key in OUT_KEYS:
+        assert torch.allclose(getattr(ob, key), getattr(ok, key), atol=1e-12), key
+    assert int(ob.radii[k]) == 0
+    for a, b in zip(gb[:5], gk[:5]):
+        assert torch.isfinite(a).all() and float(a[k].abs().sum()) == 0
+        assert torch.allclose(a[keep], b, atol=1e-10)
+    for a, b in zip(gb[5:], gk[5:]):     # background and pose
+        assert torch.allclose(a, b, atol=1e-10)
+
+
+def test_in_place_change_before_backward_is_refused():
+    """The backward must not read a tensor the caller changed after the forward (a numpy view of
+    it would silently give wrong gradients); autograd's version check refuses it instead."""
+    g = [t.clone().requires_grad_(True) for t in _scene(30)]
+    out = _fast(g)
+    with torch.no_grad():
+        g[1].mul_(1.7)
+    with pytest.raises(RuntimeError, match="inplace"):
+        out.color.sum().backward()
+    # a sample map changed after set_sample_map does not change the selection either
+    g = [t.detach().clone().requires_grad_(True) for t in _scene(30)]
+    score = torch.rand(CAM.height, CAM.width, generator=torch.Generator().manual_seed(3), dtype=F64)
+    grads = []
+    for mutate in (False, True):
+        out = _fast(g, sample_ratio=0.5)
+        s = score.clone()
+        out.set_sample_map(s)
+        if mutate:
+            s.neg_()
+        for t in g:
+            t.grad = None
+        out.color.sum().backward()
+        grads.append([t.grad.clone() for t in g])
+    for a, b in zip(*grads):
+        assert torch.equal(a, b)
+
+
+def test_tiny_sample_ratio_selects_no_pixel():
+    score = torch.rand(40, 50, generator=torch.Generator().manual_seed(0), dtype=F64)
+    assert int(select_sample_pixels(score, 1e-12).sum()) == 0
+    assert int(select_sample_pixels(score, 0.5).sum()) > 0
+    for bad in (0.0, -1.0, float("nan"), 1.5):
+        with pytest.raises(InputError, match="ratio"):
+            select_sample_pixels(score, bad)
+    with pytest.raises(InputError, match="H, W"):
+        select_sample_pixels(torch.rand(3, 4, 5), 0.5)
+    g = [t.clone().requires_grad_(True) for t in _scene(30)]
+    out = _fast(g, sample_ratio=1e-12)
+    out.color.sum().backward()
+    assert out.stats["bwd_pixels"] == 0 and all(float(t.grad.abs().sum()) == 0 for t in g)
+
+
 def test_world_normals_and_pose_conventions():
     # the same surfel seen from a moved camera: T_cw is world->camera; normal_world is consistent
     g = _scene(50, seed=23)

@@ -46,6 +46,22 @@ class CameraModel:
             raise ValueError(f"unknown distortion model {self.distortion_model!r}; "
                              f"expected one of {DISTORTION_MODELS}")
         self.distortion = np.asarray(self.distortion, dtype=np.float64).reshape(-1)
+        for name in ("width", "height"):       # 640.0 from a YAML file is 640; 640.5 is an error
+            v = getattr(self, name)
+            try:
+                whole = not isinstance(v, bool) and float(v).is_integer()
+            except (TypeError, ValueError):
+                whole = False
+            if not whole:
+                raise ValueError(f"camera {name} must be a whole number of pixels, got {v!r}")
+            setattr(self, name, int(v))
+        for name in ("fx", "fy", "cx", "cy"):
+            try:
+                v = float(getattr(self, name))
+            except (TypeError, ValueError):
+                v = float("nan")
+            if not np.isfinite(v):
+                raise ValueError(f"camera {name} must be a finite number, got {getattr(self, name)!r}")
         if self.width <= 0 or self.height <= 0:
             raise ValueError(f"camera size must be positive, got {self.width}x{self.height}")
         if not (self.fx > 0 and self.fy > 0):

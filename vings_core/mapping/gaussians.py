@@ -191,7 +191,7 @@ class GaussianMap:
 
         ``T``: (4, 4) for all ``rows`` or (M, 4, 4) one per selected row; ``rows``: bool mask or
         indices (None = all). Means are transformed, rotations left-multiplied; Adam moments of means
-        and quats are rotated along (they are expressed in the world frame).
+        and quats are rotated along (they are expressed in the world frame); second moments are kept.
         """
         sel = torch.arange(len(self), device=self.device) if rows is None else rows
         if sel.dtype == torch.bool:
@@ -210,9 +210,13 @@ class GaussianMap:
         qR = rotmat_to_quat(R)
         q = quat_multiply(qR, self.quats[sel].to(torch.float64))
         mm = (R @ self.m_means[sel].to(torch.float64)[:, :, None])[:, :, 0]
+        # q -> qR q is the orthogonal linear map L(qR), so dL/dq (and its Adam first moment) maps by
+        # the same L; the second moments (per-component squares) cannot be rotated and are kept
+        mq = quat_multiply(qR, self.m_quats[sel].to(torch.float64))
         self.means[sel] = mu.to(torch.float32)
         self.quats[sel] = q.to(torch.float32)
         self.m_means[sel] = mm.to(torch.float32)
+        self.m_quats[sel] = mq.to(torch.float32)
 
 
 def field_names() -> Iterable[str]:

@@ -124,10 +124,7 @@ class Mapper:
             self._move_active_by_owner(deltas)
         if not move_gaussians:
             # passive Gaussians must not follow either: re-snapshot their owners
-            for c in self.passive.chunks:
-                for i, s in enumerate(c.owners):
-                    if int(s) in deltas:
-                        c.owner_T[i] = self._poses[int(s)]
+            self.passive.resnapshot({s: self._poses[s] for s in deltas})
 
     def add_keyframe(self, kf: Keyframe) -> dict:
         """Insert a keyframe: tier update (every ``delta_k``), render it, delete conflicting Gaussians,
@@ -277,10 +274,17 @@ class Mapper:
         d: dict[str, np.ndarray] = {}
         for k, v in self.gm.to_numpy().items():
             d[f"active/{k}"] = v
-        pas = self.passive.all(self._poses)
-        pas = GaussianMap.empty(self.cfg.sh_degree, self.cfg.window_size) if pas is None else pas
-        for k, v in pas.to_numpy().items():
-            d[f"passive/{k}"] = v
+        # passive Gaussians as stored, with the owner poses they were stored under (a pose change
+        # still pending for them is applied once, on return, exactly as without the checkpoint)
+        pas = self.passive.state()
+        if not pas:
+            pas = GaussianMap.empty(self.cfg.sh_degree, self.cfg.window_size).to_numpy()
+            pas.update(chunk=np.zeros(0, np.int64), owner_chunk=np.zeros(0, np.int64),
+                       owners=np.zeros(0, np.int64), owner_T=np.zeros((0, 4, 4)))
+        for k in ALL_FIELDS:
+            d[f"passive/{k}"] = pas[k]
+        for k in ("chunk", "owner_chunk", "owners", "owner_T"):
+            d[f"passive_chunks/{k}"] = pas[k]
         d["kf/stamps"] = np.array(self._order, dtype=np.int64)
         d["kf/T_wc"] = np.stack([self._poses[s] for s in self._order]) if self._order else np.zeros((0, 4, 4))
         for i, kf in enumerate(self.window):
@@ -359,7 +363,12 @@ class Mapper:
                             zip(z["pose_adam/stamps"], z["pose_adam/m"], z["pose_adam/v"], z["pose_adam/steps"])}
         except KeyError as e:
             raise InputError(f"{path}: checkpoint lacks field {e}") from None
-        if len(pas):
+        if "passive_chunks/chunk" in z:
+            if len(pas):
+                m.passive.restore({**{k: z[f"passive/{k}"] for k in ALL_FIELDS},
+                                   **{k: z[f"passive_chunks/{k}"] for k in ("chunk", "owner_chunk", "owners",
+                                                                           "owner_T")}})
+        elif len(pas):       # older checkpoints: passive Gaussians saved moved to the current poses
             m.passive.put(pas, m._poses)
         m.render_count = int(meta["render_count"])
         m.kf_count = int(meta["kf_count"])
@@ -815,6 +824,9 @@ class Mapper:
                 kf.T_wc = torch.from_numpy(self._poses[kf.stamp_ns].copy())
         if mode == "multi":
             self._move_active_by_owner(deltas)
+        else:
+            # single: only the cameras move; the owners' passive Gaussians stay too
+            self.passive.resnapshot({s: self._poses[s] for s in deltas})
 
 
 def _compact(kf: Keyframe) -> dict:

@@ -23,7 +23,7 @@ import os
 import numpy as np
 
 from ..errors import InputError
-from ..util import atomic_write
+from ..util import atomic_write, log
 from .gaussians import GaussianMap
 
 FLAT_LOG_RATIO = math.log(1e-3)
@@ -55,12 +55,21 @@ def gaussians_to_ply_array(gm: GaussianMap) -> np.ndarray:
                            for c in cols], 1)
 
 
-def write_ply(path: str | os.PathLike, gm: GaussianMap) -> None:
-    """Write ``gm`` as a viewer-compatible binary PLY, atomically."""
+def write_ply(path: str | os.PathLike, gm: GaussianMap) -> int:
+    """Write ``gm`` as a viewer-compatible binary PLY, atomically; returns the number of splats
+    written. Gaussians with a non-finite value or a zero quaternion are left out (with a warning):
+    viewers break on NaN bounds or normalise the quaternion to NaN."""
     names = ply_property_names(gm.sh_degree)
-    data = np.ascontiguousarray(gaussians_to_ply_array(gm).astype("<f4"))
+    data = gaussians_to_ply_array(gm)
+    q = gm.quats.detach().cpu()
+    ok = np.isfinite(data).all(1) & (q.norm(dim=-1) > 0).numpy()
+    if not ok.all():
+        log.warning("%s: %d of %d Gaussians left out (non-finite values or a zero quaternion)",
+                    path, int((~ok).sum()), len(ok))
+        data = data[ok]
+    data = np.ascontiguousarray(data.astype("<f4"))
     header = ["ply", "format binary_little_endian 1.0", "comment VINGS-ROS 2DGS map (surfels: scale_2 is tiny)",
-              f"element vertex {len(gm)}"] + [f"property float {p}" for p in names] + ["end_header"]
+              f"element vertex {len(data)}"] + [f"property float {p}" for p in names] + ["end_header"]
     head = ("\n".join(header) + "\n").encode("ascii")
 
     def _w(tmp: str) -> None:
@@ -68,6 +77,7 @@ def write_ply(path: str | os.PathLike, gm: GaussianMap) -> None:
             f.write(head)
             f.write(data.tobytes())
     atomic_write(path, _w)
+    return len(data)
 
 
 def read_ply(path: str | os.PathLike) -> dict[str, np.ndarray]:

@@ -166,11 +166,8 @@ class PassiveStore:
             if not sel_owner.any():
                 kept.append(c)
                 continue
-            try:
-                arrays = self._load(c)
-            except InputError as e:   # the file is gone or damaged: report, drop, keep the rest
-                log.error("%s: %d passive Gaussians lost", e, c.n)
-                self.lost_total += c.n
+            arrays = self._read(c)
+            if arrays is None:
                 lost = True
                 continue
             rows = np.isin(arrays["kf_id"], c.owners[sel_owner])
@@ -201,6 +198,50 @@ class PassiveStore:
     def all(self, poses: dict[int, np.ndarray]) -> Optional[GaussianMap]:
         """Every stored Gaussian (copies, moved by pose changes), the store unchanged."""
         return self.take(lambda o: np.ones(len(o), dtype=bool), poses, remove=False)
+
+    def state(self) -> dict[str, np.ndarray]:
+        """The store as stored, for a lossless checkpoint (:meth:`restore`): every Gaussian's fields
+        ``{name: rows}`` *not* moved by pose changes since it was stored, ``chunk`` (row -> chunk
+        ordinal), and per (chunk, owner) the owner pose it was stored under: ``owner_chunk``,
+        ``owners``, ``owner_T``. Saving the moved Gaussians instead would round a later pose change
+        differently (two float32 moves instead of one). Empty dict for an empty store."""
+        parts, oc, ow, oT = [], [], [], []
+        for c in list(self.chunks):
+            arrays = self._read(c)
+            if arrays is None:
+                self.chunks.remove(c)
+                continue
+            k = len(parts)
+            parts.append(arrays)
+            oc.append(np.full(len(c.owners), k, np.int64))
+            ow.append(c.owners)
+            oT.append(c.owner_T)
+        if not parts:
+            return {}
+        out = {name: np.concatenate([a[name] for a in parts]) for name in ALL_FIELDS}
+        out["chunk"] = np.concatenate([np.full(len(a["kf_id"]), k, np.int64) for k, a in enumerate(parts)])
+        out["owner_chunk"], out["owners"] = np.concatenate(oc), np.concatenate(ow)
+        out["owner_T"] = np.concatenate(oT)
+        return out
+
+    def restore(self, state: dict[str, np.ndarray]) -> None:
+        """Append the chunks of a :meth:`state` (same chunk order and owner snapshots)."""
+        if not state:
+            return
+        for k in np.unique(state["chunk"]):
+            rows = state["chunk"] == k
+            own = state["owner_chunk"] == k
+            snap = {int(s): T for s, T in zip(state["owners"][own], state["owner_T"][own])}
+            self.put(GaussianMap.from_numpy({name: state[name][rows] for name in ALL_FIELDS}), snap)
+
+    def resnapshot(self, poses: dict[int, np.ndarray]) -> None:
+        """Take ``poses`` (stamp -> T_wc) as the poses the stored Gaussians of those owners were stored
+        under: a later pose change moves them by the change from these, so a pose change made
+        without moving the map leaves them where they are."""
+        for c in self.chunks:
+            for i, s in enumerate(c.owners):
+                if int(s) in poses:
+                    c.owner_T[i] = poses[int(s)]
 
     def clear(self) -> None:
         for c in self.chunks:
@@ -239,6 +280,16 @@ class PassiveStore:
             c.path = path
             c.arrays = None
             self.spilled_total += 1
+
+    def _read(self, c: _Chunk) -> Optional[dict]:
+        """The chunk's arrays; None (reported, counted in ``lost_total``) when its file is gone or
+        damaged: the caller drops the chunk and keeps the rest of the map."""
+        try:
+            return self._load(c)
+        except InputError as e:
+            log.error("%s: %d passive Gaussians lost", e, c.n)
+            self.lost_total += c.n
+            return None
 
     def _load(self, c: _Chunk) -> dict:
         if c.arrays is not None:

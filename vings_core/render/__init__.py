@@ -20,13 +20,19 @@ __all__ = ["RenderOutput", "rasterize_2dgs", "gaussian_scores", "render_referenc
 
 def select_sample_pixels(score, ratio: float):
     """``(H, W)`` bool mask of the pixels the sampled backward keeps: per 16x16 tile the
-    ``ceil(ratio * n)`` highest-``score`` pixels (ties: lower row-major index first)."""
+    ``ceil(ratio * n)`` highest-``score`` pixels (ties: lower row-major index first; NaN scores
+    last); ``ratio`` in (0, 1]."""
     import numpy as np
     import torch
 
+    from ..errors import InputError
     from .kernels import select_pixels
-    s = score.detach().cpu().numpy() if torch.is_tensor(score) else np.asarray(score)
-    s = np.ascontiguousarray(s, dtype=np.float64)
+    from .rasterize import _as_numpy
+    if not (0.0 < float(ratio) <= 1.0):
+        raise InputError(f"select_sample_pixels: ratio must be in (0, 1], got {ratio}")
+    s = _as_numpy(score, np.float64, "select_sample_pixels: score")
+    if s.ndim != 2:
+        raise InputError(f"select_sample_pixels: score must be (H, W), got shape {s.shape}")
     sel = np.ones(s.shape, np.uint8)
     if ratio < 1.0:
         select_pixels(s, float(ratio), sel)

@@ -196,7 +196,9 @@ def _band_tiles(aux, bbox, g, ty, exact, spans):
 def preprocess(params, cst, width, height, aux, bbox, radii, ntiles):
     """Cull, and compute per Gaussian its pixel bounding box and tile count.
 
-    ``aux[i]`` (16 values): ``mean2d_x, mean2d_y, rho_cut, 0`` where ``rho_cut = 2 ln(255 o)`` is
+    Culled: centre depth outside ``(near, far)``, opacity below 1/255, or any non-finite value in
+    the record (so a NaN/zero quaternion or NaN/inf scale, opacity or colour draws nothing and gets
+    zero gradients). ``aux[i]`` (16 values): ``mean2d_x, mean2d_y, rho_cut, 0`` where ``rho_cut = 2 ln(255 o)`` is
     the largest ``rho`` with ``alpha >= 1/255``, then the splat's homogeneous line coordinates
     about its projected centre ``(mx, my)``: with ``M0' = M_0 - mx M_2``, ``M1' = M_1 - my M_2``,
     ``A = M1' x M_2``, ``B = M0' x M_2``, ``C = M0' x M1'`` (each 3), the ray-splat cross product
@@ -237,6 +239,13 @@ only the tiles its row spans reach, :func:`_row_span`). Exact: the 3D part is th
         m8 = params[i, 8]
         o = params[i, 9]
         if not (m8 > near and m8 < far and o >= amin):
+            continue
+        # a non-finite record (zero or NaN quaternion, NaN/inf scale, opacity or colour) is culled:
+        # its NaN would otherwise run through every pixel's transmittance and every gradient
+        chk = zero
+        for c in range(NPARAM):
+            chk += params[i, c]
+        if not (chk - chk == zero):
             continue
         lk = np.log(o) + cst[_LN255]
         if lk < zero:
@@ -683,7 +692,7 @@ def forward_tiles(params, aux, pbox, tile_off, gids, gslot, cst, width, height, 
 def select_pixels(score, ratio, out_sel):
     """Per 16x16 tile, mark the ``ceil(ratio * n)`` pixels of highest ``score`` (ties: lower
     row-major index first; a NaN score ranks below every number). ``ratio >= 1`` marks every
-    pixel."""
+    pixel, a ratio so small that ``ceil(ratio * n)`` is 0 none."""
     height, width = score.shape
     tiles_x = (width + TILE - 1) // TILE
     tiles_y = (height + TILE - 1) // TILE
@@ -696,6 +705,11 @@ def select_pixels(score, ratio, out_sel):
         py1 = min(py0 + TILE, height)
         n = (px1 - px0) * (py1 - py0)
         k = int(np.ceil(ratio * n - 1e-9))
+        if k <= 0:
+            for y in range(py0, py1):
+                for x in range(px0, px1):
+                    out_sel[y, x] = 0
+            continue
         if k >= n:
             for y in range(py0, py1):
                 for x in range(px0, px1):

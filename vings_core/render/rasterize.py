@@ -97,11 +97,12 @@ class _State:
 
 
 def _as_numpy(a: ArrayLike, dtype, what: str) -> np.ndarray:
+    """A private C-contiguous copy (the caller may change its tensor before the backward)."""
     if torch.is_tensor(a):
         a = a.detach().cpu().numpy()
     try:
-        return np.ascontiguousarray(np.asarray(a, dtype=dtype))
-    except (TypeError, ValueError) as e:
+        return np.array(a, dtype=dtype, order="C", copy=True)
+    except (TypeError, ValueError, RuntimeError, NotImplementedError) as e:
         raise InputError(f"{what}: cannot convert to a {np.dtype(dtype).name} array ({e})") from None
 
 
@@ -225,7 +226,7 @@ class _Rasterize2DGS(torch.autograd.Function):
     def forward(ctx, params, background, st, loss, out_holder):
         p = params.detach().cpu().numpy()
         p = np.ascontiguousarray(p)
-        bg = np.ascontiguousarray(background.detach().cpu().numpy())
+        bg = np.array(background.detach().cpu().numpy(), order="C", copy=True)
         with _Threads(st.width, st.height, p.shape[0]):
             res = _forward_numpy(st, p, bg, loss)
         ctx.st = st
@@ -262,7 +263,10 @@ def _check(name: str, t, shape_tail: tuple, n: Optional[int]) -> torch.Tensor:
 
 def _prepare(means, quats, scales, opacities, colors, T_cw, camera, sh_degree, pose_delta,
              near, far):
-    """Validate inputs; return (means, quats, scales, opacities, colors, T_cw tensor, dtype)."""
+    """Validate inputs; return (means, quats, scales, opacities, colors, T_cw tensor, pose_delta).
+
+    Shapes, dtypes, devices and the pose are checked here; non-finite Gaussian parameters are not
+    (a per-render scan would cost more than the kernels' culling of such Gaussians)."""
     if not isinstance(camera, CameraModel):
         raise InputError(f"rasterize_2dgs: camera must be a CameraModel, got {type(camera).__name__}")
     if camera.is_distorted:
@@ -272,6 +276,8 @@ def _prepare(means, quats, scales, opacities, colors, T_cw, camera, sh_degree, p
     N = means.shape[0]
     if means.dtype not in (torch.float32, torch.float64):
         raise InputError(f"rasterize_2dgs: means must be float32 or float64, got {means.dtype}")
+    if means.device.type not in ("cpu", "cuda"):
+        raise InputError(f"rasterize_2dgs: means are on device {means.device.type!r}; need cpu or cuda")
     quats = _check("quats (xyzw)", quats, (4,), N)
     scales = _check("scales", scales, (2,), N)
     opacities = torch.as_tensor(opacities) if not torch.is_tensor(opacities) else opacities
@@ -280,20 +286,37 @@ def _prepare(means, quats, scales, opacities, colors, T_cw, camera, sh_degree, p
     if sh_degree is None:
         colors = _check("colors", colors, (3,), N)
     else:
-        if not torch.is_tensor(colors) or colors.dim() != 3 or colors.shape[0] != N or colors.shape[2] != 3:
+        if isinstance(sh_degree, bool) or not isinstance(sh_degree, (int, np.integer)):
+            raise InputError(f"rasterize_2dgs: sh_degree must be an integer 0..3 or None, got {sh_degree!r}")
+        if not torch.is_tensor(colors):
+            colors = torch.as_tensor(np.asarray(colors))
+        if colors.dim() != 3 or colors.shape[0] != N or colors.shape[2] != 3:
             raise InputError(f"rasterize_2dgs: with sh_degree, colors must be SH coefficients of shape "
                              f"({N}, K, 3), got {tuple(getattr(colors, 'shape', ()))}")
         if not 0 <= int(sh_degree) <= 3 or colors.shape[1] < (int(sh_degree) + 1) ** 2:
             raise InputError(f"rasterize_2dgs: sh_degree={sh_degree} needs 0..3 and at least "
                              f"{(int(sh_degree) + 1) ** 2} coefficients, got {colors.shape[1]}")
-    T = torch.as_tensor(T_cw if torch.is_tensor(T_cw) else np.asarray(T_cw, dtype=np.float64))
+    try:
+        T = torch.as_tensor(T_cw if torch.is_tensor(T_cw) else np.asarray(T_cw, dtype=np.float64))
+    except (TypeError, ValueError) as e:
+        raise InputError(f"rasterize_2dgs: T_cw must be a 4x4 array ({e})") from None
     if T.shape != (4, 4):
         raise InputError(f"rasterize_2dgs: T_cw must be 4x4, got {tuple(T.shape)}")
-    if pose_delta is not None and tuple(pose_delta.shape) != (6,):
-        raise InputError(f"rasterize_2dgs: pose_delta must have shape (6,), got {tuple(pose_delta.shape)}")
+    if T.device.type == "meta" or not bool(torch.isfinite(T.detach()).all()):
+        raise InputError("rasterize_2dgs: T_cw has non-finite entries")
+    if pose_delta is not None:
+        if not torch.is_tensor(pose_delta):
+            try:
+                pose_delta = torch.as_tensor(np.asarray(pose_delta, dtype=np.float64))
+            except (TypeError, ValueError) as e:
+                raise InputError(f"rasterize_2dgs: pose_delta must be a (6,) array ({e})") from None
+        if tuple(pose_delta.shape) != (6,):
+            raise InputError(f"rasterize_2dgs: pose_delta must have shape (6,), got {tuple(pose_delta.shape)}")
+        if pose_delta.device.type == "meta" or not bool(torch.isfinite(pose_delta.detach()).all()):
+            raise InputError("rasterize_2dgs: pose_delta has non-finite entries")
     if not (0 < near < far):
         raise InputError(f"rasterize_2dgs: need 0 < near < far, got near={near}, far={far}")
-    return means, quats, scales, opacities, colors, T
+    return means, quats, scales, opacities, colors, T, pose_delta
 
 
 def apply_pose_delta(pose_delta: torch.Tensor, T_cw: torch.Tensor) -> torch.Tensor:
@@ -327,12 +350,16 @@ class _ProjectSurfels(torch.autograd.Function):
         if n:
             with _Threads(0, 0, n):
                 K.project_fwd(*np_, Rcw, tcw, *intr, out, sign)
-        ctx.save = (np_[0], np_[1], np_[2], sign, Rcw, intr)
+        # the tensors, not numpy views of them: autograd's version check then refuses a backward
+        # after the caller changed them in place (a view would silently give wrong gradients)
+        ctx.save_for_backward(means, quats, scales)
+        ctx.save = (sign, Rcw, intr)
         return torch.from_numpy(out).to(dt)
 
     @staticmethod
     def backward(ctx, dpar):
-        means, quats, scales, sign, Rcw, intr = ctx.save
+        sign, Rcw, intr = ctx.save
+        means, quats, scales = (np.ascontiguousarray(t.detach().cpu().numpy()) for t in ctx.saved_tensors)
         n = means.shape[0]
         want_pose = bool(ctx.needs_input_grad[5])
         dp = np.ascontiguousarray(dpar.detach().cpu().numpy().astype(means.dtype, copy=False))
@@ -414,7 +441,7 @@ def rasterize_2dgs(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tenso
         raise InputError(f"rasterize_2dgs: unknown backend {backend!r} (auto, numba, gsplat)")
     if not (0.0 < float(sample_ratio) <= 1.0):
         raise InputError(f"rasterize_2dgs: sample_ratio must be in (0, 1], got {sample_ratio}")
-    means, quats, scales, opacities, colors, T = _prepare(
+    means, quats, scales, opacities, colors, T, pose_delta = _prepare(
         means, quats, scales, opacities, colors, T_cw, camera, sh_degree, pose_delta, near, far)
     if backend == "gsplat" or (backend == "auto" and means.is_cuda):
         from .gsplat_backend import gsplat_available, rasterize_gsplat
@@ -430,14 +457,22 @@ def rasterize_2dgs(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tenso
     H, W = camera.height, camera.width
     params = _camera_setup(means, quats, scales, opacities, colors, T, camera, sh_degree,
                            pose_delta)
-    bg = torch.zeros(3, dtype=dt) if background is None else torch.as_tensor(background).to(dt)
+    try:
+        bg = torch.zeros(3, dtype=dt) if background is None else torch.as_tensor(background).to(dt)
+    except (TypeError, ValueError, RuntimeError) as e:
+        raise InputError(f"rasterize_2dgs: background must be a (3,) colour ({e})") from None
     if bg.shape != (3,):
         raise InputError(f"rasterize_2dgs: background must have shape (3,), got {tuple(bg.shape)}")
+    if not bool(torch.isfinite(bg.detach()).all()):
+        raise InputError(f"rasterize_2dgs: background has non-finite values {bg.detach().tolist()}")
     loss = None
     if loss_map is not None:
         loss = _as_numpy(loss_map, np.float64, "loss_map")
         if loss.shape != (H, W):
             raise InputError(f"rasterize_2dgs: loss_map must have shape {(H, W)}, got {loss.shape}")
+        if not np.isfinite(loss).all():
+            raise InputError(f"rasterize_2dgs: loss_map has {int((~np.isfinite(loss)).sum())} non-finite "
+                             "pixels (they would make the error score NaN)")
     st = _State(W, H, float(near), float(far), float(sample_ratio), loss)
     holder: list = []
     color, depth, normal, alpha, dist = _Rasterize2DGS.apply(params, bg, st, loss, holder)
