@@ -10,6 +10,8 @@ PYTEST_ARGS ?=
 .PHONY: install demo test test-slow bench clean
 
 $(STAMP): requirements.txt setup.py setup.cfg
+	@test -x $(VPY) || $(PY) -c 'import sys; sys.exit(0 if sys.version_info[:2] == (3, 11) else \
+		"$(PY) is Python %d.%d; the ROS 2 Jazzy wheels need Python 3.11: make $(MAKECMDGOALS) PY=python3.11" % sys.version_info[:2])'
 	test -x $(VPY) || $(PY) -m venv $(VENV)
 	$(VPY) -m pip install -q --upgrade pip
 	$(VPY) -m pip install -q -r requirements.txt
@@ -22,7 +24,7 @@ install: $(STAMP)
 demo: $(STAMP)
 	$(VENV)/bin/vings sim --scene room --frames 80 --out $(DEMO_OUT)/room
 	$(VENV)/bin/vings run $(DEMO_OUT)/room --out $(DEMO_OUT)/run --sync
-	@echo "demo outputs: $(DEMO_OUT)/run (trajectory.tum, keyframes.tum, map.ply, metrics.json, renders/)"
+	@echo "demo outputs: $(DEMO_OUT)/run (trajectory.tum, keyframes.tum, map.ply, checkpoint.pt, metrics.json, renders/)"
 
 test: $(STAMP)
 	$(VPY) -m pytest -q $(PYTEST_ARGS)

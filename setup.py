@@ -17,7 +17,7 @@ setup(
         (f"share/{PACKAGE}/params", glob("params/*.yaml")),
         (f"share/{PACKAGE}/launch", glob("launch/*.py")),
     ],
-    python_requires=">=3.10",
+    python_requires=">=3.11,<3.12",
     install_requires=[],  # pinned set in requirements.txt (see README); ROS deps come from package.xml
     zip_safe=False,
     maintainer="VINGS-ROS developers",

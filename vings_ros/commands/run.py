@@ -32,9 +32,13 @@ def run(args: argparse.Namespace) -> int:
     from vings_core.pipeline import RunConfig, SlamRunner, open_working_source
 
     cfg = load_section(RunConfig, "run", args.params)
-    if args.params:     # the nodes' section too: a typo there is reported here, not at launch time
+    if args.params:     # every section (the nodes' too) before any work: a typo fails at once
+        from vings_core.frontend import FrontendConfig
+        from vings_core.mapping import MapperConfig
         from vings_ros.node_common import NodeConfig
         load_section(NodeConfig, "ros", args.params)
+        load_section(FrontendConfig, "frontend", args.params)
+        load_section(MapperConfig, "mapping", args.params)
     cfg.sync = cfg.sync or args.sync
     cfg.gt_poses = cfg.gt_poses or args.gt_poses
     source = open_working_source(args.source, source_options(args), cfg.width, cfg.height)
