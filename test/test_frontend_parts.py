@@ -219,3 +219,25 @@ def test_triangulate_grid_finds_depth_by_1d_search():
     assert torch.allclose(d[0], true[0])
     assert torch.allclose(d[1, 10:], true[1, 10:])
     assert torch.allclose(d[1, :10], true[1, 10:].median().expand(10))
+
+
+def test_gain_offset_and_rotation_only_residual():
+    from vings_core.frontend.flow import gain_offset
+    from vings_core.frontend.tracker import rotation_only_residual
+    from vings_core.geometry import np_so3_exp
+    img = _texture().astype(np.float32)
+    mask = np.ones(img.shape, bool)
+    a, b = gain_offset(img, 1.3 * img - 20.0, mask)
+    assert abs(a - 1.3) < 0.05 and abs(b + 20.0) < 3.0
+    assert gain_offset(img, img, np.zeros_like(mask)) == (1.0, 0.0)   # too few pixels: identity
+    K = np.array([[200.0, 0, 64], [0, 200.0, 48], [0, 0, 1]])
+    rng = np.random.default_rng(0)
+    P = np.c_[rng.uniform(-1, 1, (200, 2)), rng.uniform(2, 6, 200)]
+    R = np_so3_exp(np.array([0.02, -0.05, 0.01]))
+
+    def proj(X):
+        q = X @ K.T
+        return q[:, :2] / q[:, 2:]
+    p0 = proj(P)
+    assert rotation_only_residual(p0, proj(P @ R.T), K) < 1e-6
+    assert rotation_only_residual(p0, proj(P @ R.T + np.array([0.2, 0.0, 0.0])), K) > 2.0

@@ -210,3 +210,70 @@ def test_bad_input_raises_clear_errors():
     dist = CameraModel(160, 120, 110.0, 110.0, 79.5, 59.5, "radtan", np.array([0.1, 0, 0, 0]))
     with pytest.raises(ConfigError, match="distortion"):
         Frontend(FrontendConfig(), dist)
+
+
+def test_more_bad_input_is_refused_before_any_change(box_sequence):
+    frames, _, _ = box_sequence
+    fe = Frontend(_cfg(), CAM)
+    img = frames[0].image
+    with pytest.raises(InputError, match="integer nanoseconds"):
+        fe.process(Frame(1.5, img, CAM))              # seconds as a float
+    with pytest.raises(InputError, match="channels"):
+        fe.process(Frame(1, np.zeros((120, 160, 4), np.uint8), CAM))
+    other = CameraModel(160, 120, 200.0, 200.0, 79.5, 59.5)
+    with pytest.raises(InputError, match="camera"):
+        fe.process(Frame(1, img, other))
+    with pytest.raises(InputError, match="never processed"):
+        fe.pose(12345)
+    for f in frames[:12]:
+        fe.process(f)
+        fe.pop_keyframes()
+    s0, s1 = sorted(fe.keyframe_trajectory().stamps_ns)[:2]
+    before = {s: fe.pose(s) for s in (s0, s1)}
+    moved = before[s0].copy()
+    moved[:3, 3] += 1.0
+    with pytest.raises(InputError, match="rigid"):
+        fe.set_poses({int(s0): moved, int(s1): np.zeros((4, 4))})
+    for s in (s0, s1):                               # nothing applied
+        assert np.array_equal(fe.pose(s), before[s])
+
+
+def test_exposure_step_keeps_tracking(box_sequence):
+    """An auto-exposure jump (+60 grey levels from frame 18 on) is not a tracking failure."""
+    frames, poses, _ = box_sequence
+    fe = Frontend(_cfg(), CAM)
+    for k, f in enumerate(frames):
+        img = f.image if k < 18 else np.clip(f.image.astype(np.int16) + 60, 0, 255).astype(np.uint8)
+        fe.process(Frame(f.stamp_ns, img, CAM))
+        fe.pop_keyframes()
+    fe.finish()
+    states = list(fe.frame_states().values())
+    assert states.count("tracking") == len(frames) and fe.stats["segments"] == 1
+    ate, path, _, _ = _ate(fe, frames, poses)
+    assert ate < 0.01 * path
+
+
+def test_pure_rotation_does_not_initialise():
+    """Rotating in place gives no baseline: the front end must wait, not invent depth."""
+    from vings_core.geometry import np_pose, np_so3_exp
+    scene = make_box_scene(seed=1)
+    for step in (0.015, 0.03):
+        fe = Frontend(_cfg(), CAM)
+        for k in range(40):
+            T = np_pose(np_so3_exp(np.array([0.0, -0.3 + step * k, 0.0])), np.array([0.0, 0.3, -1.5]))
+            fe.process(Frame(1_000_000_000 + k * STEP_NS, render_box(scene, CAM, T)[0], CAM))
+        assert fe.state == "waiting" and fe.pop_keyframes() == [] and fe.finish() == []
+
+
+def test_black_frame_while_waiting_keeps_the_reference(box_sequence):
+    frames, poses, _ = box_sequence
+    fe = Frontend(_cfg(), CAM)
+    for k, f in enumerate(frames[:14]):
+        img = np.zeros_like(f.image) if k == 2 else f.image
+        fe.process(Frame(f.stamp_ns, img, CAM))
+        fe.pop_keyframes()
+    st = fe.frame_states()
+    assert st[frames[2].stamp_ns] == "waiting"
+    assert any("almost no texture" in e for e in fe.events)
+    # the frames before the black one are re-posed at initialisation, not left behind
+    assert st[frames[0].stamp_ns] == "tracking" and st[frames[1].stamp_ns] == "tracking"

@@ -183,13 +183,29 @@ def texture_weight(img: np.ndarray, h: int, w: int, s: int, tau: float) -> np.nd
     return (lmin / (lmin + tau)).astype(np.float64)
 
 
+def gain_offset(src: np.ndarray, dst: np.ndarray, mask: np.ndarray, min_px: int = 200) -> tuple[float, float]:
+    """Robust global brightness model ``dst ~ a src + b`` between two aligned grey images (grey
+    levels), from the pixels of ``mask`` that are unclipped in both: ``a`` the ratio of the
+    interquartile ranges (clamped to 0.5..2), ``b`` the median residual. ``(1, 0)`` when fewer than
+    ``min_px`` pixels qualify."""
+    m = mask & (src > 3) & (src < 252) & (dst > 3) & (dst < 252)
+    if int(m.sum()) < min_px:
+        return 1.0, 0.0
+    s, d = src[m], dst[m]
+    qs = np.percentile(s, (25.0, 75.0))
+    qd = np.percentile(d, (25.0, 75.0))
+    a = float(np.clip((qd[1] - qd[0]) / max(qs[1] - qs[0], 1.0), 0.5, 2.0))
+    return a, float(np.median(d - a * s))
+
+
 def grid_flow(flow_ij: np.ndarray, flow_ji: Optional[np.ndarray], img_i: np.ndarray,
               img_j: np.ndarray, grid_uv: np.ndarray, stride: int, cfg: FrontendConfig,
               tex_i: Optional[np.ndarray] = None) -> GridFlow:
     """Reduce dense flow ``i -> j`` to the BA grid with confidence weights.
 
     Per pixel: forward-backward consistency ``|f_ij(x) + f_ji(x + f_ij(x))|`` (if ``flow_ji`` is
-    given), photometric error ``|I_j(x + f) - I_i(x)|`` and in-bounds test, each mapped to
+    given), photometric error ``|a I_j(x + f) + b - I_i(x)|`` (global gain/offset ``a, b`` from
+    :func:`gain_offset`: exposure changes) and in-bounds test, each mapped to
     ``1 / (1 + (e / sigma)^2)``. Per ``stride`` block: the confidence-weighted mean flow (assigned to
     the block centre), times the block's mean confidence, texture weight, the block NCC between
     ``I_i`` and the flow-warped ``I_j`` (mapped linearly from ``ncc_min..1`` to ``0..1``) and a
@@ -209,7 +225,10 @@ def grid_flow(flow_ij: np.ndarray, flow_ji: Optional[np.ndarray], img_i: np.ndar
     warped = cv2.remap(img_j.astype(np.float32), mx, my, cv2.INTER_LINEAR,
                        borderMode=cv2.BORDER_REPLICATE)
     gi = img_i.astype(np.float32)
-    ph = warped - gi
+    # a global brightness change between the images (auto exposure, lights) is not a matching
+    # error: compare after the gain/offset that maps I_j onto I_i (the block NCC below is invariant)
+    a, b = gain_offset(warped, gi, inb)
+    ph = a * warped + b - gi
     c = c / (1.0 + (ph * ph) / cfg.photo_sigma ** 2)
     n = float(stride * stride)
     # block zero-mean NCC between I_i and the warped I_j: rejects flows that are consistent both

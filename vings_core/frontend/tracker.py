@@ -57,6 +57,21 @@ def _torch_threads(n: int):
         torch.set_num_threads(old)
 
 
+def rotation_only_residual(p0: np.ndarray, p1: np.ndarray, K: np.ndarray) -> float:
+    """Median pixel distance left between matched pixels ``p0 -> p1`` (``(N, 2)``) after the best
+    pure-rotation model ``p1 ~ K R K^-1 p0`` (``R`` by Kabsch on the unit bearing vectors): ~0 when
+    the camera only rotated (no baseline: depth is unobservable), the parallax otherwise."""
+    Ki = np.linalg.inv(K)
+    b0 = np.c_[p0, np.ones(len(p0))] @ Ki.T
+    b1 = np.c_[p1, np.ones(len(p1))] @ Ki.T
+    b0 /= np.linalg.norm(b0, axis=1, keepdims=True)
+    b1 /= np.linalg.norm(b1, axis=1, keepdims=True)
+    U, _, Vt = np.linalg.svd(b1.T @ b0)
+    R = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
+    q = np.c_[p0, np.ones(len(p0))] @ (K @ R @ Ki).T
+    return float(np.median(np.linalg.norm(p1 - q[:, :2] / q[:, 2:3], axis=1)))
+
+
 def orthonormalize(T: torch.Tensor) -> torch.Tensor:
     """Project the rotation block of ``(..., 4, 4)`` poses onto SO(3) (SVD)."""
     U, _, Vh = torch.linalg.svd(T[..., :3, :3])
@@ -203,7 +218,9 @@ class Frontend:
 
     def pose(self, stamp_ns: int) -> np.ndarray:
         """Current best ``T_wc`` of a processed frame (4x4 float64)."""
-        return np.linalg.inv(self._T_cw_of(stamp_ns))
+        if int(stamp_ns) not in self._buffer:
+            raise InputError(f"frontend.pose: stamp {stamp_ns} was never processed by the front end")
+        return np.linalg.inv(self._T_cw_of(int(stamp_ns)))
 
     def trajectory(self, states: tuple = STATES) -> Trajectory:
         """Every processed frame's current ``T_wc`` (cam0-to-world), optionally only those whose
@@ -232,6 +249,11 @@ class Frontend:
             T = np.asarray(T, np.float64)
             if T.shape != (4, 4) or not np.all(np.isfinite(T)):
                 raise InputError(f"frontend.set_poses: pose for stamp {s} is not a finite 4x4 matrix")
+            R = T[:3, :3]
+            if (not np.allclose(T[3], (0.0, 0.0, 0.0, 1.0), atol=1e-9)
+                    or not np.allclose(R.T @ R, np.eye(3), atol=1e-6) or np.linalg.det(R) < 0):
+                raise InputError(f"frontend.set_poses: pose for stamp {s} is not a rigid transform "
+                                 f"(rotation block not orthonormal, or last row not 0 0 0 1)")
         win = {kf.stamp: kf for kf in self.window}
         old_T = {kf.stamp: kf.T_cw.clone() for kf in self.window}
         for s, T in poses_wc.items():
@@ -279,10 +301,19 @@ class Frontend:
     # ---------------------------------------------------------------------------- helpers
 
     def _check_frame(self, frame: Frame) -> None:
+        if isinstance(frame.stamp_ns, (bool, np.bool_)) or not isinstance(frame.stamp_ns, (int, np.integer)):
+            raise InputError(f"frame stamp {frame.stamp_ns!r}: stamps are integer nanoseconds "
+                             f"(got {type(frame.stamp_ns).__name__})")
         img = np.asarray(frame.image)
         if img.ndim not in (2, 3) or img.shape[0] != self.H or img.shape[1] != self.W:
             raise InputError(f"frame {frame.stamp_ns}: image shape {img.shape} does not match the "
                              f"front end's working resolution {self.W}x{self.H}")
+        if img.ndim == 3 and img.shape[2] not in (1, 3):
+            raise InputError(f"frame {frame.stamp_ns}: image has {img.shape[2]} channels, expected "
+                             f"1 (grey) or 3 (RGB)")
+        if frame.camera is not None and frame.camera != self.camera:
+            raise InputError(f"frame {frame.stamp_ns}: camera {frame.camera} differs from the "
+                             f"front end's {self.camera}")
         if img.dtype != np.uint8:
             raise InputError(f"frame {frame.stamp_ns}: image dtype {img.dtype}, expected uint8")
         if self._last_stamp is not None and frame.stamp_ns <= self._last_stamp:
@@ -369,8 +400,16 @@ class Frontend:
             return [self._record(stamp, None, self._anchor_T_cw.copy(), "waiting")]
         ref = self._ref
         base = self._chained_base(ref.chain[0], ref.chain[1], gray) if ref.chain else None
-        gf, gb, f01, _ = self._flow_pair(ref.gray, gray, init01=base, tex0=ref.tex,
-                                         tex1=self._tex(gray))
+        tex1 = self._tex(gray)
+        gf, gb, f01, _ = self._flow_pair(ref.gray, gray, init01=base, tex0=ref.tex, tex1=tex1)
+        if gf.conf_frac < cfg.min_confident_frac and float(tex1.mean()) < cfg.min_confident_frac:
+            # a black, saturated or blank frame is not a new start: keep the reference (and the
+            # flow chain, which must not run through this frame)
+            why = f"has almost no texture (black, saturated or blank image); kept reference frame {ref.stamp}"
+            if not self.reason.endswith(why):       # one event per run of such frames
+                self.events.append(f"waiting: frame {stamp} {why}")
+            self.reason = f"waiting: frame {stamp} {why}"
+            return [self._record(stamp, None, self._anchor_T_cw.copy(), "waiting")]
         ref.chain = (f01, gray)
         mean_lr = gf.mean_flow / STRIDE
         self.max_mean_flow_lr = max(self.max_mean_flow_lr, mean_lr)
@@ -415,9 +454,16 @@ class Frontend:
         p0h = np.c_[p0, np.ones(len(p0))] @ Hinf.T
         p0r = p0h[:, :2] / p0h[:, 2:3]
         par = float(np.median(np.linalg.norm(p1 - p0r, axis=1)[inl])) if inl.any() else 0.0
+        # under pure rotation E is degenerate and recoverPose's R can be off by degrees, which
+        # leaves fake "parallax": refuse when a rotation alone explains the matches to noise level
+        rot_res = rotation_only_residual(p0[inl], p1[inl], self.Kmat) if inl.any() else 0.0
         if frac < cfg.init_min_inlier_frac:
             self.reason = (f"waiting: essential matrix has only {100 * frac:.0f}% inliers "
                            f"(need {100 * cfg.init_min_inlier_frac:.0f}%)")
+            return None
+        if rot_res < 2.0 * cfg.init_ransac_px:
+            self.reason = (f"waiting for parallax: a pure rotation explains the motion (median "
+                           f"residual {rot_res:.2f} px); depth needs the camera to translate")
             return None
         if par < cfg.init_min_parallax_lr_px * STRIDE:
             self.reason = (f"waiting for parallax: median rotation-compensated flow "
