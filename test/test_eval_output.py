@@ -161,3 +161,25 @@ def test_failed_run_stops_the_mapper_instead_of_mapping_its_queue(tmp_path):
     assert submitted >= 3, submitted
     assert mapped < submitted, (mapped, submitted)
     assert not (tmp_path / "out" / "metrics.json").exists()
+
+
+def test_gt_poses_mode_never_extrapolates_or_bridges_gaps():
+    """`vings run --gt-poses`: frames outside the ground truth's span or inside a gap in it get no
+    pose (skipped with a warning), instead of a crash or an invented pose."""
+    from vings_core.pipeline import RunConfig, _GtKeyframer
+    from vings_core.types import Trajectory
+    st = np.r_[np.arange(0, 10), np.arange(20, 30)].astype(np.int64) * 5_000_000   # 200 Hz, 50 ms gap
+    poses = np.tile(np.eye(4), (len(st), 1, 1))
+    poses[:, 0, 3] = st * 1e-9
+
+    class _Src:
+        path = "fake"
+
+        def gt_camera_trajectory(self):
+            return Trajectory(st, poses)
+    k = _GtKeyframer(_Src(), RunConfig())
+    T = k.pose(22_500_000)                        # between two samples 5 ms apart: interpolated
+    assert T is not None and T[0, 3] == pytest.approx(0.0225)
+    assert k.pose(75_000_000) is None             # inside the 50 ms gap
+    assert k.pose(-50_000_000) is None and k.pose(400_000_000) is None    # outside the span
+    assert k.pose(147_000_000) is not None        # 2 ms after the last sample: nearest within 10 ms

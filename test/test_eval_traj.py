@@ -256,6 +256,8 @@ def test_rpe_scale_correction_and_explicit_lengths():
     assert r["trans_pct"] < 1e-6
     assert rpe(est, gt, lengths_m=[]) is None
     assert rpe(est, gt, lengths_m=[1e6]) is None  # no pair that far apart
+    twice = rpe(est, gt, lengths_m=[4.0, 2.0, 4.0], correct_scale=False)   # a repeated length counts once
+    assert twice["lengths_m"] == [2.0, 4.0] and twice["pairs"] == r_raw["pairs"]
 
 
 def test_rpe_none_for_short_path():

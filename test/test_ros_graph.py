@@ -288,6 +288,45 @@ def test_rejected_correction_is_undone_in_the_mapper(linked):
     assert np.allclose(mp.poses[2], T2, atol=1e-9)
 
 
+@pytest.mark.parametrize("policy", ["all", "none"])
+def test_crossing_messages_keep_both_sides_equal(linked, policy):
+    """Concurrent mode / the graph: the front end sends a BA move before it has seen a correction
+    the mapper already sent. The mapper must not read that update as undoing its correction; after
+    the front end decides (accept or reject) both sides hold the same pose."""
+    from vings_core.pipeline import RunConfig
+    fe, mp, fl, ml = linked
+    fl.cfg = RunConfig(pose_writeback=policy)
+    R = _se3([0.01, 0, 0], [0, 0, 0.002])
+    M = _se3([0, 0.02, 0], [0.003, 0, 0])
+    T2 = fe.pose(2)
+    corr = _refine(mp, ml, {2: R})                 # mapper -> front end (in flight)
+    fe.set_poses({2: M @ T2})                      # window BA moves keyframe 2
+    ml.apply_frontend_poses(mp, fl.outgoing(fe))   # front end -> mapper, crossing the correction
+    fl.apply_corrections(fe, corr)                 # the correction arrives: accepted or rejected
+    ml.apply_frontend_poses(mp, fl.outgoing(fe))
+    expect = R @ M @ T2 if policy == "all" else M @ T2
+    assert np.allclose(fe.pose(2), expect, atol=1e-12)
+    assert np.allclose(mp.poses[2], fe.pose(2), atol=1e-12)
+    assert fl.outgoing(fe) == {} and not ml.in_flight
+
+
+def test_consistency_gate_counts_corrections_accepted_since_the_ba(linked):
+    """Many small corrections, each within the front end's noise, must not add up unchecked: the
+    gate measures the deviation from the BA's linearisation point, not each increment alone."""
+    import torch
+    from vings_core.frontend.ba import PoseSystem
+    from vings_core.pipeline import RunConfig
+    fe, mp, fl, ml = linked
+    sigma = 0.01
+    fe.pose_system = PoseSystem([2], torch.from_numpy(np.linalg.inv(fe.pose(2)))[None],
+                                torch.eye(6, dtype=torch.float64) / sigma ** 2,
+                                torch.zeros(6, dtype=torch.float64))
+    fl.cfg = RunConfig(pose_writeback="consistent")
+    step = _se3([2.5 * sigma, 0, 0], [0, 0, 0])   # q = 6.25 < chi2(0.99, 6) = 16.8 alone
+    accepted = sum(len(fl.apply_corrections(fe, {2: step})) for _ in range(6))
+    assert accepted == 1                           # 2 steps: q = 25 > 16.8
+
+
 def test_consistency_gate_uses_the_front_end_information(linked):
     """Corrections within the front end's pose uncertainty pass the chi-square test, large ones
     and those of keyframes outside its BA window do not."""

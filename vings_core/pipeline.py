@@ -134,13 +134,30 @@ class _GtKeyframer:
         self.last: Optional[tuple[int, np.ndarray]] = None
         self.count = 0
         self.gap = 0
+        self.skipped = 0        # frames without a ground-truth pose (outside its span, or in a gap)
 
-    def pose(self, stamp: int) -> np.ndarray:
-        from .eval.traj import interpolate_poses
-        return interpolate_poses(self.gt, np.array([stamp], np.int64))[0]
+    def pose(self, stamp: int) -> Optional[np.ndarray]:
+        """Ground-truth ``T_wc`` at ``stamp`` by the evaluation's association rules (interpolated
+        between samples at most 2 max_dt apart, else the nearest sample within max_dt); None when
+        the ground truth has no pose there (never extrapolated, never bridged over a gap)."""
+        from .eval.traj import DEFAULT_MAX_DT_NS, associate_indices
+        one = Trajectory(np.array([stamp], np.int64), np.eye(4)[None])
+        try:
+            a = associate_indices(one, self.gt, DEFAULT_MAX_DT_NS)
+        except InputError:      # outside the ground truth's span
+            return None
+        return a["gt_poses"][0] if len(a["est_idx"]) else None
 
-    def process(self, frame: Frame) -> tuple[np.ndarray, Optional[Keyframe]]:
+    def process(self, frame: Frame) -> tuple[Optional[np.ndarray], Optional[Keyframe]]:
+        """(ground-truth pose or None, keyframe or None) for one frame."""
         T = self.pose(frame.stamp_ns)
+        if T is None:
+            self.skipped += 1
+            if self.skipped in (1, 20) or self.skipped % 200 == 0:
+                log.warning("--gt-poses: no ground-truth pose at frame %d (outside the ground truth's "
+                            "span %d..%d ns, or in a gap); frame skipped (%d so far)", frame.stamp_ns,
+                            int(self.gt.stamps_ns[0]), int(self.gt.stamps_ns[-1]), self.skipped)
+            return None, None
         self.gap += 1
         new = self.last is None
         if not new:
@@ -175,7 +192,32 @@ class _GtKeyframer:
 # 0.0011 m for the graph: after every mapped keyframe the front end's newest window-BA poses were
 # replaced by the mapper's older ones.) Each side remembers, per keyframe, the last pose it
 # exchanged with the other side, so an increment is never applied twice and never echoed back.
+# Messages cross when both sides run at once (the graph, `vings run` without --sync): the front end
+# may send a pose before it has seen a correction the mapper already sent. So corrections travel in
+# numbered batches and every front-end update says which batch it saw last (`ack`); the mapper
+# reads the update against its picture of the front end *as of that batch*, with the corrections
+# still in flight left out (otherwise the update would undo them, and the two sides would disagree
+# for good once the front end accepted them). In ROS the batch number is the corrections Path's
+# header stamp, and the ack the stamp of the front end's keyframe-pose Path.
 # `vings run` calls these classes directly; the nodes call the same classes across topics.
+
+
+class PoseCorrections(dict):
+    """``{stamp_ns: C}`` world-frame increments from one mapper refinement, numbered ``batch``
+    (increasing; 0 = unnumbered)."""
+
+    def __init__(self, items=(), batch: int = 0) -> None:
+        super().__init__(items)
+        self.batch = int(batch)
+
+
+class PoseUpdates(dict):
+    """``{stamp_ns: T_wc}`` front-end keyframe poses, with ``ack``: the last correction batch the
+    front end had processed (accepted or rejected) when it sent them (None = unknown: every batch)."""
+
+    def __init__(self, items=(), ack: Optional[int] = None) -> None:
+        super().__init__(items)
+        self.ack = ack
 
 
 def pose_correction(T_new: np.ndarray, T_old: np.ndarray) -> np.ndarray:
@@ -191,14 +233,19 @@ class MapperPoseLink:
     """Mapper side of the pose exchange.
 
     ``fe[s]``: the front end's pose of keyframe ``s`` as the mapper last learned it (packet pose,
-    then every update), advanced by the corrections the mapper sent. A front-end update ``P`` is
-    applied as the increment ``P fe[s]^-1`` to the mapper's pose (so the mapper's refinement is kept);
+    then every update), advanced by the corrections the mapper sent. A front-end update ``P`` that
+    saw correction batches up to ``ack`` is applied as the increment ``P base^-1`` to the mapper's
+    pose, where ``base`` is ``fe[s]`` without the corrections of later batches (still in flight);
+    so the mapper's refinement is kept, and a correction the front end rejected is undone.
     :meth:`refine` returns the mapper's refinement as increments for the front end."""
 
     def __init__(self) -> None:
         self.fe: dict[int, np.ndarray] = {}
         #: updates for keyframes not added yet (the graph: still in the mapper's queue)
         self.pending: dict[int, np.ndarray] = {}
+        #: corrections sent and not yet acknowledged: stamp -> [(batch, C), ...] oldest first
+        self.in_flight: dict[int, list[tuple[int, np.ndarray]]] = {}
+        self.batch = 0
 
     def resumed(self, poses: dict[int, np.ndarray]) -> None:
         """After loading a checkpoint: take the stored poses as the last exchanged ones."""
@@ -208,8 +255,11 @@ class MapperPoseLink:
         self.fe[int(kf.stamp_ns)] = kf.T_wc.detach().cpu().numpy().astype(np.float64).copy()
 
     def apply_frontend_poses(self, mapper, poses: dict[int, np.ndarray]) -> int:
-        """Front-end keyframe poses (absolute ``T_wc``) -> increments on the mapper's poses.
-        Unknown stamps are ignored. Returns how many keyframes moved."""
+        """Front-end keyframe poses (absolute ``T_wc``; a :class:`PoseUpdates` carries the batch
+        ``ack``, a plain dict counts as having seen every batch) -> increments on the mapper's
+        poses. Unknown stamps are ignored. Returns how many keyframes moved."""
+        ack = getattr(poses, "ack", None)
+        ack = self.batch if ack is None else int(ack)
         have = mapper.keyframe_poses()
         new = {}
         for s, P in poses.items():
@@ -221,26 +271,54 @@ class MapperPoseLink:
                         self.pending.pop(min(self.pending))
                 continue
             P = np.asarray(P, np.float64)
-            if not _differs(P, self.fe[s], 1e-12):
+            # corrections the front end had not seen yet when it sent P: not part of P
+            flying = [C for b, C in self.in_flight.get(s, []) if b > ack]
+            base = self.fe[s]
+            for C in reversed(flying):
+                base = np_pose_compose(np_pose_inverse(C), base)
+            ahead = P.copy()
+            for C in flying:                   # what the front end holds once it accepts them
+                ahead = np_pose_compose(C, ahead)
+            self.fe[s] = ahead
+            if not _differs(P, base, 1e-12):
                 continue
-            new[s] = np_pose_compose(pose_correction(P, self.fe[s]), have[s])
-            self.fe[s] = P.copy()
+            D = pose_correction(P, base)
+            if flying:
+                # the front end applies the flying corrections F *after* this move (it ends at
+                # F P); here F is already applied, so the move enters conjugated: F D F^-1
+                F = pose_correction(ahead, P)
+                D = F @ D @ np_pose_inverse(F)
+            new[s] = np_pose_compose(D, have[s])
+        self._acknowledged(ack)
         if new:
             mapper.set_keyframe_poses(new)
         return len(new)
 
-    def refine(self, mapper) -> dict[int, np.ndarray]:
+    def _acknowledged(self, ack: int) -> None:
+        for s in list(self.in_flight):
+            left = [(b, C) for b, C in self.in_flight[s] if b > ack]
+            if left:
+                self.in_flight[s] = left
+            else:
+                del self.in_flight[s]
+
+    def refine(self, mapper, batch: Optional[int] = None) -> PoseCorrections:
         """Run the mapper's pose refinement; returns ``{stamp: C}`` world-frame increments of the
-        keyframes it moved (``T_new = C T_old``), to be offered to the front end."""
+        keyframes it moved (``T_new = C T_old``), to be offered to the front end, numbered ``batch``
+        (default: the next number; always raised above the previous batch)."""
         base = mapper.keyframe_poses()
         refined = mapper.refine_poses()
-        out = {}
+        out = PoseCorrections()
         for s, T in refined.items():
             if s in base and _differs(T, base[s], 1e-12):
-                C = pose_correction(T, base[s])
-                out[int(s)] = C
+                out[int(s)] = pose_correction(T, base[s])
+        if out:
+            self.batch = max(self.batch + 1, int(batch or 0))
+            out.batch = self.batch
+            for s, C in out.items():
                 if s in self.fe:
                     self.fe[s] = np_pose_compose(C, self.fe[s])
+                    self.in_flight.setdefault(s, []).append((self.batch, C))
         return out
 
 
@@ -255,16 +333,17 @@ class FrontendPoseLink:
     def __init__(self, cfg: Optional[RunConfig] = None) -> None:
         self.cfg = cfg or RunConfig()
         self.sent: dict[int, np.ndarray] = {}
+        self.ack = 0            # last correction batch processed (echoed with every update)
         self.stats = dict(corrections=0, applied=0, rejected=0, tests=0, tests_failed=0, last_q=None,
                           last_q_limit=None)
 
     def keyframe_sent(self, kf: Keyframe) -> None:
         self.sent[int(kf.stamp_ns)] = kf.T_wc.detach().cpu().numpy().astype(np.float64).copy()
 
-    def outgoing(self, frontend) -> dict[int, np.ndarray]:
-        """Keyframe poses to send to the mapper (absolute ``T_wc``)."""
+    def outgoing(self, frontend) -> PoseUpdates:
+        """Keyframe poses to send to the mapper (absolute ``T_wc``), with the batch ``ack``."""
         traj = frontend.keyframe_trajectory()
-        moved = {}
+        moved = PoseUpdates(ack=self.ack)
         for s, P in zip(traj.stamps_ns.tolist(), traj.poses):
             old = self.sent.get(int(s))
             if old is not None and _differs(P, old):
@@ -274,6 +353,8 @@ class FrontendPoseLink:
 
     def apply_corrections(self, frontend, corrections: dict[int, np.ndarray]) -> dict[int, np.ndarray]:
         """Apply the mapper's increments the policy accepts; returns the applied ``{stamp: C}``."""
+        batch = getattr(corrections, "batch", 0)
+        self.ack = max(self.ack, int(batch))
         corrections = {int(s): np.asarray(C, np.float64) for s, C in corrections.items() if int(s) in self.sent}
         if not corrections:
             return {}
@@ -308,8 +389,11 @@ def correction_consistency(frontend, corrections: dict[int, np.ndarray],
     The corrections of keyframes in the front end's BA window form a joint perturbation ``x`` of the
     window poses (left tangent of ``T_cw``); its cost under the Schur-reduced pose information ``H``
     of the last window BA (``frontend.pose_system``, 1/px^2 units: flow residuals over their
-    sigma) is ``q = x^T H x``, chi-square with ``6 n`` degrees of freedom if the correction were
-    within the front end's noise. They are accepted together iff ``q <= chi2.ppf(confidence, 6 n)``.
+    sigma) is ``q = x^T H x``, chi-square with ``rank(H_xx)`` (at most ``6 n``) degrees of freedom
+    if the correction were within the front end's noise. ``x`` is the deviation of the corrected
+    poses from the BA's linearisation point, not just this correction: corrections accepted since
+    the last BA count too, so a series of small ones cannot walk away from the visual evidence.
+    They are accepted together iff ``q <= chi2.ppf(confidence, dof)``.
     Keyframes outside the window are never accepted (no evidence to check them against).
     Returns ``(accepted, q, limit)``; ``q``/``limit`` are None when no keyframe was in the window."""
     from scipy.stats import chi2
@@ -322,15 +406,21 @@ def correction_consistency(frontend, corrections: dict[int, np.ndarray],
     if not inwin:
         return {}, None, None
     H = ps.H.detach().cpu().numpy().astype(np.float64)
+    T_lin = ps.T_cw.detach().cpu().numpy().astype(np.float64)
     x = np.zeros(H.shape[0])
+    rows = []
     for s, C in inwin.items():
-        T_wc = frontend.pose(s)
-        T_cw = np_pose_inverse(T_wc)
-        # T_cw' = T_cw C^-1 = exp(xi) T_cw  ->  xi = log(T_cw C^-1 T_wc)
-        xi = np_se3_log(T_cw @ np_pose_inverse(C) @ T_wc)
-        x[6 * idx[s]:6 * idx[s] + 6] = xi
+        i = idx[s]
+        T_wc_new = np_pose_compose(C, frontend.pose(s))
+        # T_cw_new = exp(xi) T_cw_lin  ->  xi = log(T_cw_new T_cw_lin^-1)
+        x[6 * i:6 * i + 6] = np_se3_log(np_pose_inverse(T_wc_new) @ np_pose_inverse(T_lin[i]))
+        rows.extend(range(6 * i, 6 * i + 6))
     q = float(x @ H @ x)
-    limit = float(chi2.ppf(confidence, 6 * len(inwin)))
+    ev = np.linalg.eigvalsh(H[np.ix_(rows, rows)])
+    dof = int((ev > 1e-9 * max(float(ev.max()), 1e-300)).sum())
+    if dof == 0:            # the window's BA constrains none of these poses: nothing to check against
+        return {}, None, None
+    limit = float(chi2.ppf(confidence, dof))
     return (dict(inwin) if q <= limit else {}), q, limit
 
 
@@ -356,7 +446,8 @@ def map_keyframe(mapper, link: MapperPoseLink, kf: Keyframe, refine: bool = True
         stats = mapper.train(n)
         done += n
     stats["iterations_total"] = done
-    corrections = link.refine(mapper) if refine and not (stop is not None and stop()) else {}
+    corrections = (link.refine(mapper, batch=int(kf.stamp_ns)) if refine and not (stop is not None and stop())
+                   else PoseCorrections())
     return stats, corrections
 
 
@@ -480,9 +571,10 @@ class SlamRunner:
                 self._take_corrections()
                 if self.gt_kf is not None:
                     T, kf = self.gt_kf.process(frame)
-                    self._gt_poses[frame.stamp_ns] = T
+                    if T is not None:
+                        self._gt_poses[frame.stamp_ns] = T
                     kfs = [kf] if kf is not None else []
-                    state = "tracking"
+                    state = "tracking" if T is not None else "no ground truth"
                 else:
                     ests = self.frontend.process(frame)
                     kfs = self.frontend.pop_keyframes()

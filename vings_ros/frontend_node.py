@@ -29,7 +29,7 @@ from vings_core.errors import InputError
 from vings_core.frontend import Frontend, FrontendConfig
 from vings_core.io.calib_yaml import load_calibration_yaml
 from vings_core.io.undistort import Undistorter
-from vings_core.pipeline import FrontendPoseLink, RunConfig
+from vings_core.pipeline import FrontendPoseLink, PoseCorrections, RunConfig
 from vings_core.types import CameraModel, Frame, Trajectory
 
 from .node_common import (InputQueue, NodeConfig, RateMeter, Worker, node_sections, rss_mb,
@@ -124,11 +124,12 @@ class FrontendNode(Node):
     def _on_corrections(self, msg: Path) -> None:
         try:
             traj = path_to_trajectory(msg, T.KEYFRAME_CORRECTIONS_TOPIC)
+            batch = header_ns(msg.header, T.KEYFRAME_CORRECTIONS_TOPIC)   # the correction batch number
         except InputError as e:
             self.get_logger().warning(f"ignored a malformed correction message: {e}")
             return
         with self._lock:
-            self._corrections.append({int(s): P for s, P in zip(traj.stamps_ns, traj.poses)})
+            self._corrections.append(PoseCorrections(zip(traj.stamps_ns.tolist(), traj.poses), batch=batch))
 
     def _set_camera(self, raw: CameraModel) -> None:
         w = self.ncfg.width or None
@@ -227,7 +228,9 @@ class FrontendNode(Node):
         moved = self.link.outgoing(self.frontend)
         if not moved:
             return
-        self.pub_kf_path.publish(trajectory_to_path(Trajectory.from_poses(moved), self.ncfg.world_frame))
+        # header stamp: the last correction batch processed (the mapper reads the poses against it)
+        self.pub_kf_path.publish(trajectory_to_path(Trajectory.from_poses(moved), self.ncfg.world_frame,
+                                                    stamp_ns=moved.ack))
 
     def _publish_path(self) -> None:
         traj = self.frontend.trajectory(states=("tracking",))

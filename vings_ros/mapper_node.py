@@ -30,9 +30,10 @@ from msg_adapters.keyframe import PART_TOPICS, KeyframeAssembler
 from msg_adapters.markers import keyframe_frustums_marker, marker_array, trajectory_marker
 from msg_adapters.pointcloud import points_to_pointcloud2
 from msg_adapters.pose import path_to_trajectory, trajectory_to_path
+from msg_adapters.stamps import header_ns
 from vings_core.errors import InputError
 from vings_core.mapping import Mapper, MapperConfig
-from vings_core.pipeline import MapperPoseLink, map_keyframe
+from vings_core.pipeline import MapperPoseLink, PoseUpdates, map_keyframe
 from vings_core.types import Keyframe, Trajectory
 from .node_common import (InputQueue, NodeConfig, RateMeter, Worker, node_sections, rss_mb,
                           run_node, section_config, worth_reporting)
@@ -136,11 +137,12 @@ class MapperNode(Node):
     def _on_moved(self, msg: Path) -> None:
         try:
             traj = path_to_trajectory(msg, T.FRONTEND_KEYFRAMES_TOPIC)
+            ack = header_ns(msg.header, T.FRONTEND_KEYFRAMES_TOPIC)   # last correction batch it had seen
         except Exception as e:  # noqa: BLE001 - a bad message is reported, the node keeps running
             self.get_logger().warning(f"ignored a malformed keyframe-pose message: {e}")
             return
         with self._lock:
-            self._moved.append({int(s): P for s, P in zip(traj.stamps_ns, traj.poses)})
+            self._moved.append(PoseUpdates(zip(traj.stamps_ns.tolist(), traj.poses), ack=ack))
 
     # ----------------------------------------------------------------------------- the worker
 
@@ -179,7 +181,9 @@ class MapperNode(Node):
         self.rate.tick()
         stamp = int(kf.stamp_ns)
         if corrections:
-            self.pub_corr.publish(trajectory_to_path(Trajectory.from_poses(corrections), self.ncfg.world_frame))
+            # header stamp: the batch number (the mapped keyframe's stamp), echoed by the front end
+            self.pub_corr.publish(trajectory_to_path(Trajectory.from_poses(corrections), self.ncfg.world_frame,
+                                                     stamp_ns=corrections.batch))
         self._publish_refined(stamp)
         if self.ncfg.render_every_keyframes and self.keyframes_mapped % self.ncfg.render_every_keyframes == 0:
             self._publish_render(stamp, kf)

@@ -263,7 +263,7 @@ def rpe(est: Trajectory, gt: Trajectory, lengths_m: Optional[Sequence[float]] = 
         return None
     if lengths_m is None:
         lengths_m = default_rpe_lengths(gt.path_length())
-    lengths_m = [float(L) for L in lengths_m]
+    lengths_m = sorted({float(L) for L in lengths_m})     # a length given twice counts once
     if any(L <= 0 for L in lengths_m):
         raise InputError(f"RPE segment lengths must be positive, got {lengths_m}")
     if not lengths_m:
