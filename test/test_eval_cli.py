@@ -114,6 +114,10 @@ def test_cli_body_ground_truth_with_calib(capsys, tmp_path):
     # without the extrinsic the body trajectory differs from the camera's
     r = run_json(capsys, ["eval", str(tmp_path / "cam.tum"), "--gt", str(tmp_path / "body.tum")])
     assert r["ate_se3_m"] > 1e-3
+    # --calib alone does not make a TUM file body poses: said on stderr, not silently ignored
+    assert main(["eval", str(tmp_path / "cam.tum"), "--gt", str(tmp_path / "body.tum"), "--json",
+                 "--calib", str(tmp_path / "calib.yaml")]) == 0
+    assert "--gt-frame body" in capsys.readouterr().err
 
 
 def test_cli_run_folder_write_metrics(capsys, trajs):

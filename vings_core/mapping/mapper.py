@@ -808,7 +808,7 @@ class Mapper:
             xi[upd] -= rate * (m[upd] / (1 - b1 ** t)) / (v_hat.sqrt() + eps)
         for i in (steps > 0).nonzero()[:, 0].tolist():
             self._pose_adam[int(owners[i])] = (m[i].numpy().copy(), v[i].numpy().copy(), int(steps[i]))
-        # commit: T_k <- exp(xi_k) T_k; in multi mode the owners' Gaussians move with them
+        # commit: T_k <- T_k exp(xi_k) (camera-frame delta); in multi mode the owners' Gaussians move with them
         moved = (xi.abs().sum(1) > 0).nonzero()[:, 0]
         if moved.numel() == 0:
             return

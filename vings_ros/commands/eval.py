@@ -14,6 +14,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import sys
 from pathlib import Path
 from typing import Any, Optional
 
@@ -98,6 +99,9 @@ def load_ground_truth(gt_arg: str, gt_frame: Optional[str] = None, calib: Option
                                  "and calib.txt as --gt)") from None
             raise
         frame = gt_frame or "camera"
+        if calib and gt_frame is None:
+            print(f"vings eval: warning: --calib has no effect on {p.name}: a TUM file is taken as "
+                  "camera poses; pass --gt-frame body if it holds body (IMU) poses", file=sys.stderr)
         if frame == "body":
             if not calib:
                 raise InputError(f"{p}: --gt-frame body needs --calib FILE giving T_bc")
