@@ -252,6 +252,50 @@ def test_empty_mask_separates_sky_from_uncertain_depth():
     assert e[0, 0] and not e[0, 1] and e[0, 2] and not e[0, 3] and int(e.sum()) == 2
     e2 = empty_mask(kf2, max_depth=40.0)
     assert e2[1, 0] and int(e2.sum()) == 3
+    kf2.valid[1, 0] = True           # excessive depth marked valid (ground truth): still empty
+    assert bool(empty_mask(kf2, max_depth=40.0)[1, 0])
+
+
+def test_far_valid_pixels_are_not_seeded_at_a_nearer_depth():
+    """A keyframe whose right half is a valid surface at 60 m (beyond max_depth 40 m): no Gaussian
+    may be put there at a depth interpolated from the near half."""
+    cam = _cam(64, 40)
+    d = torch.full((40, 64), 5.0)
+    d[:, 32:] = 60.0
+    img = torch.rand(40, 64, 3, generator=torch.Generator().manual_seed(0))
+    m = Mapper(MapperConfig(points_per_keyframe=2000, iters_per_keyframe=1, max_depth=40.0))
+    m.add_keyframe(_kf(1, np.eye(4), d, cam, image=img))
+    x = m.gm.means[:, 0] / m.gm.means[:, 2] * cam.fx + cam.cx     # column of each centre
+    assert len(m.gm) > 0 and int((x > 33).sum()) == 0
+
+
+def test_loss_shares_sum_to_the_loss_and_drive_the_sampling(room_small):
+    """Each loss term's per-pixel shares sum to the term; the mapper's sample map is the weighted
+    sum of all terms (a depth error is ranked even where the colour is right)."""
+    from vings_core.mapping.losses import accumulation_loss, depth_loss, normal_loss, rgb_loss
+    g = torch.Generator().manual_seed(1)
+    a, b = torch.rand(20, 24, 3, generator=g), torch.rand(20, 24, 3, generator=g)
+    dp, dg = torch.rand(20, 24, generator=g) + 1, torch.rand(20, 24, generator=g) + 1
+    w, m = torch.rand(20, 24, generator=g), torch.rand(20, 24, generator=g) > 0.3
+    n1 = torch.nn.functional.normalize(torch.randn(20, 24, 3, generator=g), dim=-1)
+    for f, args in ((rgb_loss, (a, b, 0.2)), (depth_loss, (dp, dg, w, m)),
+                    (normal_loss, (n1, n1.flip(-1), w, m)), (accumulation_loss, (w, m))):
+        sh: list = []
+        val = f(*args, pixels=sh)
+        assert sh[0].shape == (20, 24) and float(sh[0].sum()) == pytest.approx(float(val), rel=1e-5)
+    cam, frames = room_small
+    mp = Mapper(MapperConfig(points_per_keyframe=800, iters_per_keyframe=1))
+    mp.add_keyframe(frames[0])
+    kf = frames[0]
+    out = mp._rasterize(mp.gm, torch.from_numpy(np.linalg.inv(kf.T_wc.numpy())), cam, sample_ratio=1.0)
+    terms: dict = {}
+    loss = mp._losses(out, kf, terms)
+    assert float(terms["pixel_loss"].sum()) == pytest.approx(float(loss), rel=1e-4)
+
+
+def test_mapper_refuses_a_device_it_cannot_score_on():
+    with pytest.raises(ConfigError, match="CPU"):
+        Mapper(MapperConfig(), device="meta")
 
 
 def test_fill_depth_keeps_known_pixels_and_interpolates_holes():

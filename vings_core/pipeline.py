@@ -49,7 +49,9 @@ class RunConfig:
 
     ``width``/``height``: working resolution; 0 = automatic (half the native size when the native
     width exceeds 640 px, e.g. EuRoC 752x480 -> 376x240, KITTI 1226x370 -> 613x185; else native).
-    ``gt_kf_*``: keyframe selection in ``gt_poses`` mode (translation m, rotation deg, max frame gap).
+    ``gt_kf_*``: keyframe selection in ``gt_poses`` mode (translation m, rotation deg, max frame gap);
+    ``gt_inv_depth_var``: the inverse-depth variance (1/m^2) given to ground-truth depth (0 = exact;
+    a positive value masks far pixels as uncertain and down-weights their depth loss).
     ``eval_keyframes``/``eval_novel``: at most this many keyframes / non-keyframe frames are rendered
     for PSNR (evenly spaced). ``save_renders``: keyframe renders saved under renders/.
     ``checkpoint_every``: keyframes between map checkpoints (0 = only at the end).
@@ -69,7 +71,7 @@ class RunConfig:
     gt_kf_trans_m: float = 0.25
     gt_kf_rot_deg: float = 10.0
     gt_kf_max_gap: int = 10
-    gt_inv_depth_var: float = 1.0e-4
+    gt_inv_depth_var: float = 0.0
     eval_keyframes: int = 40
     eval_novel: int = 40
     save_renders: int = 6

@@ -80,16 +80,18 @@ def empty_mask(kf: Keyframe, max_depth: float) -> torch.Tensor:
     """(H, W) bool: pixels the depth source declares *empty* (sky, beyond ``max_depth``), where the
     accumulation loss keeps the map transparent.
 
-    A pixel is empty when it is not valid and either its depth exceeds ``max_depth`` or it has no
-    surface (depth <= 0) with an inverse-depth standard deviation below ``1 / max_depth`` (1/m): the
-    inverse depth is then known to be ~0, i.e. any surface lies beyond ``max_depth`` at 1 sigma
-    (ground-truth / rendered depth of the sky: variance 0). Pixels without depth because the
+    A pixel is empty when its depth exceeds ``max_depth`` (valid or not: "excessive depth" is
+    masked out, and seeding such a pixel at a nearer interpolated depth would put Gaussians where
+    there is no surface), or when it is not valid and has no surface (depth <= 0) with an
+    inverse-depth standard deviation below ``1 / max_depth`` (1/m): the inverse depth is then known
+    to be ~0, i.e. any surface lies beyond ``max_depth`` at 1 sigma (ground-truth / rendered depth
+    of the sky: variance 0). Pixels without depth because the
     estimate is *uncertain* (front-end depth dropped for high variance) are unknown, not empty:
     forcing them transparent would punch black holes into surfaces other keyframes see well.
     """
     d = kf.depth.to(torch.float32)
     std = torch.sqrt(kf.inv_depth_var.to(torch.float32).clamp_min(0))
-    return (~kf.valid.to(torch.bool)) & ((d > max_depth) | ((d <= 0) & (std < 1.0 / max_depth)))
+    return (d > max_depth) | ((~kf.valid.to(torch.bool)) & (d <= 0) & (std < 1.0 / max_depth))
 
 
 def fill_depth(depth: torch.Tensor, known: torch.Tensor) -> torch.Tensor:

@@ -28,7 +28,7 @@ import numpy as np
 import torch
 
 from ..config import config_from_dict
-from ..errors import InputError
+from ..errors import ConfigError, InputError
 from ..geometry import np_project_rotation, pose_inverse, rotmat_to_quat, se3_exp
 from ..render import rasterize_2dgs
 from ..types import CameraModel, Keyframe
@@ -57,6 +57,11 @@ class Mapper:
         self.cfg = config if config is not None else MapperConfig()
         self.cfg.validate()
         self.device = torch.device(device)
+        if self.device.type != "cpu":
+            # the CUDA route (gsplat) gives no per-Gaussian contribution/error scores and no sampled
+            # backward: the score manager would freeze every Gaussian
+            raise ConfigError(f"Mapper(device={device!r}): the mapper runs on the CPU rasterizer only "
+                              "(its score manager needs per-Gaussian scores the gsplat route lacks)")
         self.gm = GaussianMap.empty(self.cfg.sh_degree, self.cfg.window_size, self.device)
         self._slots: list[int] = [-1] * self.cfg.window_size   # window keyframe stamp per score slot
         self.passive = PassiveStore(int(self.cfg.passive_memory_mb * 2**20), self.cfg.spill_dir or None)
@@ -570,13 +575,15 @@ class Mapper:
         aux = self._kf_aux(kf)
         l1 = l1_map(out.color, img)
         it_terms["l1_map"] = l1.detach()
-        l_rgb = rgb_loss(out.color, img, cfg.lambda_ssim, target_stats=aux["ssim_stats"], l1=l1)
+        shares: list = []       # each term's per-pixel share (sums to the term)
+        l_rgb = rgb_loss(out.color, img, cfg.lambda_ssim, target_stats=aux["ssim_stats"], l1=l1, pixels=shares)
         if expected_depth:
             a = out.alpha
             l_d = depth_loss(out.depth / a.clamp_min(1e-6), kf.depth, aux["w_depth"],
-                             aux["usable"] & (a.detach() > 0.5))
+                             aux["usable"] & (a.detach() > 0.5), pixels=shares)
         else:
-            l_d = depth_loss(out.depth, kf.depth, aux["w_depth"], aux["usable"])
+            l_d = depth_loss(out.depth, kf.depth, aux["w_depth"], aux["usable"], pixels=shares)
+        pixel_loss = cfg.lambda_rgb * shares[0] + cfg.lambda_depth * shares[1]
         total = cfg.lambda_rgb * l_rgb + cfg.lambda_depth * l_d
         l_n = torch.zeros(())
         l_a = torch.zeros(())
@@ -585,11 +592,17 @@ class Mapper:
             exp_d = out.depth / a.clamp_min(1e-6)
             n_d, ok = normals_from_depth(exp_d, kf.camera)
             ok = ok & (a.detach() > 0.5)
-            l_n = normal_loss(out.normal, n_d, torch.ones_like(a), ok)
+            shares.clear()
+            l_n = normal_loss(out.normal, n_d, torch.ones_like(a), ok, pixels=shares)
             total = total + cfg.lambda_normal * l_n
+            pixel_loss = pixel_loss + cfg.lambda_normal * shares[0]
         if with_acc and cfg.lambda_acc > 0:
-            l_a = accumulation_loss(out.alpha, aux["masked"])
+            shares.clear()
+            l_a = accumulation_loss(out.alpha, aux["masked"], pixels=shares)
             total = total + cfg.lambda_acc * l_a
+            pixel_loss = pixel_loss + cfg.lambda_acc * shares[0]
+        # the sampled backward keeps, per tile, the pixels with the highest share of this loss
+        it_terms["pixel_loss"] = pixel_loss
         it_terms.update(loss=float(total.detach()), rgb=float(l_rgb.detach()), depth=float(l_d.detach()),
                         normal=float(l_n.detach()), acc=float(l_a.detach()))
         return total
@@ -621,8 +634,9 @@ class Mapper:
         terms: dict = {}
         loss = self._losses(out, kf, terms)
         l1 = terms.pop("l1_map")
+        pixel_loss = terms.pop("pixel_loss")
         if cfg.sample_ratio < 1.0:
-            out.set_sample_map(l1)
+            out.set_sample_map(pixel_loss)
         loss.backward()
         terms["psnr"] = -10 * math.log10(max(float((out.color.detach().clamp(0, 1) - kf.image).pow(2).mean()), 1e-12))
         with torch.no_grad():
@@ -771,6 +785,7 @@ class Mapper:
             terms: dict = {}
             loss = self._losses(out, kf, terms, with_normal=False, with_acc=False, expected_depth=True)
             terms.pop("l1_map", None)
+            terms.pop("pixel_loss", None)
             loss.backward()
             g = x.grad.detach().clone()
             # a pose is updated only when the render shows enough of what constrains it
