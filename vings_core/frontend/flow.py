@@ -183,11 +183,13 @@ def texture_weight(img: np.ndarray, h: int, w: int, s: int, tau: float) -> np.nd
     return (lmin / (lmin + tau)).astype(np.float64)
 
 
-def gain_offset(src: np.ndarray, dst: np.ndarray, mask: np.ndarray, min_px: int = 200) -> tuple[float, float]:
+def gain_offset(src: np.ndarray, dst: np.ndarray, mask: np.ndarray, min_px: int = 20) -> tuple[float, float]:
     """Robust global brightness model ``dst ~ a src + b`` between two aligned grey images (grey
-    levels), from the pixels of ``mask`` that are unclipped in both: ``a`` the ratio of the
+    levels), from the samples of ``mask`` that are unclipped in both: ``a`` the ratio of the
     interquartile ranges (clamped to 0.5..2), ``b`` the median residual. ``(1, 0)`` when fewer than
-    ``min_px`` pixels qualify."""
+    ``min_px`` samples qualify. Give it block means, not pixels: a bilinear warp blurs ``src``,
+    which shrinks its pixel spread (a biased ``a`` of ~1.04 on a scene of constant exposure), while
+    block means are unchanged by the blur."""
     m = mask & (src > 3) & (src < 252) & (dst > 3) & (dst < 252)
     if int(m.sum()) < min_px:
         return 1.0, 0.0
@@ -225,16 +227,17 @@ def grid_flow(flow_ij: np.ndarray, flow_ji: Optional[np.ndarray], img_i: np.ndar
     warped = cv2.remap(img_j.astype(np.float32), mx, my, cv2.INTER_LINEAR,
                        borderMode=cv2.BORDER_REPLICATE)
     gi = img_i.astype(np.float32)
-    # a global brightness change between the images (auto exposure, lights) is not a matching
-    # error: compare after the gain/offset that maps I_j onto I_i (the block NCC below is invariant)
-    a, b = gain_offset(warped, gi, inb)
-    ph = a * warped + b - gi
-    c = c / (1.0 + (ph * ph) / cfg.photo_sigma ** 2)
     n = float(stride * stride)
-    # block zero-mean NCC between I_i and the warped I_j: rejects flows that are consistent both
-    # ways but wrong (self-similar fine texture matched at the wrong place)
     mi = _blocks(gi, h, w, stride) / n
     mw = _blocks(warped, h, w, stride) / n
+    # a global brightness change between the images (auto exposure, lights) is not a matching
+    # error: compare after the gain/offset that maps I_j onto I_i, fitted on the block means of
+    # fully in-bounds blocks (the block NCC below is invariant to it anyway)
+    a, b = gain_offset(mw, mi, _blocks(inb.astype(np.float32), h, w, stride) >= n - 0.5)
+    ph = a * warped + b - gi
+    c = c / (1.0 + (ph * ph) / cfg.photo_sigma ** 2)
+    # block zero-mean NCC between I_i and the warped I_j: rejects flows that are consistent both
+    # ways but wrong (self-similar fine texture matched at the wrong place)
     vi = np.maximum(_blocks(gi * gi, h, w, stride) / n - mi * mi, 0)
     vw = np.maximum(_blocks(warped * warped, h, w, stride) / n - mw * mw, 0)
     cov = _blocks(gi * warped, h, w, stride) / n - mi * mw
