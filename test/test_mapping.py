@@ -269,30 +269,6 @@ def test_far_valid_pixels_are_not_seeded_at_a_nearer_depth():
     assert len(m.gm) > 0 and int((x > 33).sum()) == 0
 
 
-def test_loss_shares_sum_to_the_loss_and_drive_the_sampling(room_small):
-    """Each loss term's per-pixel shares sum to the term; the mapper's sample map is the weighted
-    sum of all terms (a depth error is ranked even where the colour is right)."""
-    from vings_core.mapping.losses import accumulation_loss, depth_loss, normal_loss, rgb_loss
-    g = torch.Generator().manual_seed(1)
-    a, b = torch.rand(20, 24, 3, generator=g), torch.rand(20, 24, 3, generator=g)
-    dp, dg = torch.rand(20, 24, generator=g) + 1, torch.rand(20, 24, generator=g) + 1
-    w, m = torch.rand(20, 24, generator=g), torch.rand(20, 24, generator=g) > 0.3
-    n1 = torch.nn.functional.normalize(torch.randn(20, 24, 3, generator=g), dim=-1)
-    for f, args in ((rgb_loss, (a, b, 0.2)), (depth_loss, (dp, dg, w, m)),
-                    (normal_loss, (n1, n1.flip(-1), w, m)), (accumulation_loss, (w, m))):
-        sh: list = []
-        val = f(*args, pixels=sh)
-        assert sh[0].shape == (20, 24) and float(sh[0].sum()) == pytest.approx(float(val), rel=1e-5)
-    cam, frames = room_small
-    mp = Mapper(MapperConfig(points_per_keyframe=800, iters_per_keyframe=1))
-    mp.add_keyframe(frames[0])
-    kf = frames[0]
-    out = mp._rasterize(mp.gm, torch.from_numpy(np.linalg.inv(kf.T_wc.numpy())), cam, sample_ratio=1.0)
-    terms: dict = {}
-    loss = mp._losses(out, kf, terms)
-    assert float(terms["pixel_loss"].sum()) == pytest.approx(float(loss), rel=1e-4)
-
-
 def test_mapper_refuses_a_device_it_cannot_score_on():
     with pytest.raises(ConfigError, match="CPU"):
         Mapper(MapperConfig(), device="meta")

@@ -171,25 +171,18 @@ def l1_map(pred: torch.Tensor, gt: torch.Tensor) -> torch.Tensor:
 
 def rgb_loss(pred: torch.Tensor, gt: torch.Tensor, lambda_ssim: float = 0.2,
              mask: torch.Tensor | None = None, target_stats: tuple | None = None,
-             l1: torch.Tensor | None = None, pixels: list | None = None) -> torch.Tensor:
+             l1: torch.Tensor | None = None) -> torch.Tensor:
     """``(1 - l) L1 + l (1 - SSIM)`` averaged over pixels (or over ``mask``). ``target_stats``:
     cached :func:`ssim_target_stats` of ``gt``; ``l1``: the (differentiable) :func:`l1_map` if the
-    caller already has it. ``pixels``: a list that receives the detached (H, W) share of each pixel
-    in the loss (the map sums to the loss), as do the other losses here."""
+    caller already has it."""
     l1 = l1_map(pred, gt) if l1 is None else l1
     term = (1 - lambda_ssim) * l1
     if lambda_ssim > 0:
         term = term + lambda_ssim * (1 - ssim_map_fast(pred, gt, target_stats))
-    m = torch.ones_like(term) if mask is None else mask.to(term.dtype)
-    return _mean_with_share(term, m, pixels)
-
-
-def _mean_with_share(term: torch.Tensor, m: torch.Tensor, pixels: list | None) -> torch.Tensor:
-    """``sum(term m) / max(sum m, 1)``; appends each pixel's detached share to ``pixels``."""
-    n = m.sum().clamp_min(1)
-    if pixels is not None:
-        pixels.append((term.detach() * m / n).to(torch.float64))
-    return (term * m).sum() / n
+    if mask is None:
+        return term.mean()
+    m = mask.to(term.dtype)
+    return (term * m).sum() / m.sum().clamp_min(1)
 
 
 def depth_weight(depth: torch.Tensor, inv_depth_var: torch.Tensor, rel_std0: float) -> torch.Tensor:
@@ -203,13 +196,12 @@ def depth_weight(depth: torch.Tensor, inv_depth_var: torch.Tensor, rel_std0: flo
     return torch.where(torch.isfinite(w), w, torch.zeros((), dtype=w.dtype))
 
 
-def depth_loss(pred: torch.Tensor, gt: torch.Tensor, weight: torch.Tensor, valid: torch.Tensor,
-               pixels: list | None = None) -> torch.Tensor:
-    """Uncertainty-weighted relative L1 ``mean_valid w |D_hat - D| / D`` (scale-free: indoors and
-    outdoors). ``pixels``: see :func:`rgb_loss`."""
+def depth_loss(pred: torch.Tensor, gt: torch.Tensor, weight: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
+    """Uncertainty-weighted relative L1 ``mean_valid w |D_hat - D| / D`` (scale-free: indoors and outdoors)."""
     m = valid & (gt > 0)
+    n = m.sum().clamp_min(1)
     r = (pred - gt).abs() / gt.clamp_min(1e-6)
-    return _mean_with_share(r * weight, m.to(r.dtype), pixels)
+    return (r * weight * m.to(r.dtype)).sum() / n
 
 
 def normals_from_depth(depth: torch.Tensor, camera: CameraModel) -> tuple[torch.Tensor, torch.Tensor]:
@@ -240,21 +232,19 @@ def normals_from_depth(depth: torch.Tensor, camera: CameraModel) -> tuple[torch.
 
 
 def normal_loss(n_render: torch.Tensor, n_depth: torch.Tensor, weight: torch.Tensor,
-                valid: torch.Tensor, pixels: list | None = None) -> torch.Tensor:
-    """2DGS normal consistency: ``mean_valid w (1 - n_render . n_depth)``. ``pixels``: see
-    :func:`rgb_loss`."""
+                valid: torch.Tensor) -> torch.Tensor:
+    """2DGS normal consistency: ``mean_valid w (1 - n_render . n_depth)``."""
+    m = valid.to(n_render.dtype)
     e = 1 - (n_render * n_depth).sum(-1)
-    return _mean_with_share(e * weight, valid.to(n_render.dtype), pixels)
+    return (e * weight * m).sum() / m.sum().clamp_min(1)
 
 
-def accumulation_loss(alpha: torch.Tensor, masked: torch.Tensor, pixels: list | None = None) -> torch.Tensor:
+def accumulation_loss(alpha: torch.Tensor, masked: torch.Tensor) -> torch.Tensor:
     """Pixels known to be empty (``init.empty_mask``: sky, beyond max depth) must stay transparent:
-    ``mean_masked alpha``. ``pixels``: see :func:`rgb_loss`."""
+    ``mean_masked alpha``."""
     if not bool(masked.any()):
-        if pixels is not None:
-            pixels.append(torch.zeros(alpha.shape, dtype=torch.float64))
         return alpha.sum() * 0
-    return _mean_with_share(alpha, masked.to(alpha.dtype), pixels)
+    return alpha[masked].mean()
 
 
 def psnr(a: torch.Tensor, b: torch.Tensor) -> float:

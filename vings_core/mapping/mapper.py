@@ -575,15 +575,13 @@ class Mapper:
         aux = self._kf_aux(kf)
         l1 = l1_map(out.color, img)
         it_terms["l1_map"] = l1.detach()
-        shares: list = []       # each term's per-pixel share (sums to the term)
-        l_rgb = rgb_loss(out.color, img, cfg.lambda_ssim, target_stats=aux["ssim_stats"], l1=l1, pixels=shares)
+        l_rgb = rgb_loss(out.color, img, cfg.lambda_ssim, target_stats=aux["ssim_stats"], l1=l1)
         if expected_depth:
             a = out.alpha
             l_d = depth_loss(out.depth / a.clamp_min(1e-6), kf.depth, aux["w_depth"],
-                             aux["usable"] & (a.detach() > 0.5), pixels=shares)
+                             aux["usable"] & (a.detach() > 0.5))
         else:
-            l_d = depth_loss(out.depth, kf.depth, aux["w_depth"], aux["usable"], pixels=shares)
-        pixel_loss = cfg.lambda_rgb * shares[0] + cfg.lambda_depth * shares[1]
+            l_d = depth_loss(out.depth, kf.depth, aux["w_depth"], aux["usable"])
         total = cfg.lambda_rgb * l_rgb + cfg.lambda_depth * l_d
         l_n = torch.zeros(())
         l_a = torch.zeros(())
@@ -592,17 +590,11 @@ class Mapper:
             exp_d = out.depth / a.clamp_min(1e-6)
             n_d, ok = normals_from_depth(exp_d, kf.camera)
             ok = ok & (a.detach() > 0.5)
-            shares.clear()
-            l_n = normal_loss(out.normal, n_d, torch.ones_like(a), ok, pixels=shares)
+            l_n = normal_loss(out.normal, n_d, torch.ones_like(a), ok)
             total = total + cfg.lambda_normal * l_n
-            pixel_loss = pixel_loss + cfg.lambda_normal * shares[0]
         if with_acc and cfg.lambda_acc > 0:
-            shares.clear()
-            l_a = accumulation_loss(out.alpha, aux["masked"], pixels=shares)
+            l_a = accumulation_loss(out.alpha, aux["masked"])
             total = total + cfg.lambda_acc * l_a
-            pixel_loss = pixel_loss + cfg.lambda_acc * shares[0]
-        # the sampled backward keeps, per tile, the pixels with the highest share of this loss
-        it_terms["pixel_loss"] = pixel_loss
         it_terms.update(loss=float(total.detach()), rgb=float(l_rgb.detach()), depth=float(l_d.detach()),
                         normal=float(l_n.detach()), acc=float(l_a.detach()))
         return total
@@ -634,9 +626,10 @@ class Mapper:
         terms: dict = {}
         loss = self._losses(out, kf, terms)
         l1 = terms.pop("l1_map")
-        pixel_loss = terms.pop("pixel_loss")
         if cfg.sample_ratio < 1.0:
-            out.set_sample_map(pixel_loss)
+            # per tile, the pixels with the highest colour error L_rgb(u) (the paper's per-pixel
+            # loss, also the error score's map); ranking by every term's share was measured worse
+            out.set_sample_map(l1)
         loss.backward()
         terms["psnr"] = -10 * math.log10(max(float((out.color.detach().clamp(0, 1) - kf.image).pow(2).mean()), 1e-12))
         with torch.no_grad():
@@ -785,7 +778,6 @@ class Mapper:
             terms: dict = {}
             loss = self._losses(out, kf, terms, with_normal=False, with_acc=False, expected_depth=True)
             terms.pop("l1_map", None)
-            terms.pop("pixel_loss", None)
             loss.backward()
             g = x.grad.detach().clone()
             # a pose is updated only when the render shows enough of what constrains it
