@@ -272,25 +272,16 @@ class MapperPoseLink:
                     while len(self.pending) > 1000:
                         self.pending.pop(min(self.pending))
                 continue
-            P = np.asarray(P, np.float64)
-            # corrections the front end had not seen yet when it sent P: not part of P
-            flying = [C for b, C in self.in_flight.get(s, []) if b > ack]
-            base = self.fe[s]
-            for C in reversed(flying):
-                base = np_pose_compose(np_pose_inverse(C), base)
-            ahead = P.copy()
-            for C in flying:                   # what the front end holds once it accepts them
-                ahead = np_pose_compose(C, ahead)
-            self.fe[s] = ahead
-            if not _differs(P, base, 1e-12):
-                continue
-            D = pose_correction(P, base)
-            if flying:
-                # the front end applies the flying corrections F *after* this move (it ends at
-                # F P); here F is already applied, so the move enters conjugated: F D F^-1
-                F = pose_correction(ahead, P)
-                D = F @ D @ np_pose_inverse(F)
-            new[s] = np_pose_compose(D, have[s])
+            # corrections the front end had not seen yet when it sent P are not part of P; it will
+            # hold F P once it accepts them (F their product), and fe[s] already includes them: so
+            # the front end's own move is F P fe[s]^-1 (with no correction in flight: P fe[s]^-1)
+            ahead = np.asarray(P, np.float64).copy()
+            for b, C in self.in_flight.get(s, []):
+                if b > ack:
+                    ahead = np_pose_compose(C, ahead)
+            old, self.fe[s] = self.fe[s], ahead
+            if _differs(ahead, old, 1e-12):
+                new[s] = np_pose_compose(pose_correction(ahead, old), have[s])
         self._acknowledged(ack)
         if new:
             mapper.set_keyframe_poses(new)

@@ -454,13 +454,13 @@ class Frontend:
         p0h = np.c_[p0, np.ones(len(p0))] @ Hinf.T
         p0r = p0h[:, :2] / p0h[:, 2:3]
         par = float(np.median(np.linalg.norm(p1 - p0r, axis=1)[inl])) if inl.any() else 0.0
-        # under pure rotation E is degenerate and recoverPose's R can be off by degrees, which
-        # leaves fake "parallax": refuse when a rotation alone explains the matches to noise level
-        rot_res = rotation_only_residual(p0[inl], p1[inl], self.Kmat) if inl.any() else 0.0
         if frac < cfg.init_min_inlier_frac:
             self.reason = (f"waiting: essential matrix has only {100 * frac:.0f}% inliers "
                            f"(need {100 * cfg.init_min_inlier_frac:.0f}%)")
             return None
+        # under pure rotation E is degenerate and recoverPose's R can be off by degrees, which
+        # leaves fake "parallax": refuse when a rotation alone explains the matches to noise level
+        rot_res = rotation_only_residual(p0[inl], p1[inl], self.Kmat) if inl.any() else 0.0
         if rot_res < 2.0 * cfg.init_ransac_px:
             self.reason = (f"waiting for parallax: a pure rotation explains the motion (median "
                            f"residual {rot_res:.2f} px); depth needs the camera to translate")

@@ -261,6 +261,20 @@ def _check(name: str, t, shape_tail: tuple, n: Optional[int]) -> torch.Tensor:
     return t
 
 
+def _finite_tensor(name: str, value, shape: tuple) -> torch.Tensor:
+    """``value`` as a tensor (a tensor is kept as given: it may carry gradients; anything else
+    becomes float64) of ``shape`` with finite entries, else InputError naming ``name``."""
+    try:
+        t = value if torch.is_tensor(value) else torch.as_tensor(np.asarray(value, dtype=np.float64))
+    except (TypeError, ValueError) as e:
+        raise InputError(f"rasterize_2dgs: {name} must be a {shape} array ({e})") from None
+    if tuple(t.shape) != shape:
+        raise InputError(f"rasterize_2dgs: {name} must have shape {shape}, got {tuple(t.shape)}")
+    if t.device.type == "meta" or not bool(torch.isfinite(t.detach()).all()):
+        raise InputError(f"rasterize_2dgs: {name} has non-finite entries")
+    return t
+
+
 def _prepare(means, quats, scales, opacities, colors, T_cw, camera, sh_degree, pose_delta,
              near, far):
     """Validate inputs; return (means, quats, scales, opacities, colors, T_cw tensor, pose_delta).
@@ -296,24 +310,9 @@ def _prepare(means, quats, scales, opacities, colors, T_cw, camera, sh_degree, p
         if not 0 <= int(sh_degree) <= 3 or colors.shape[1] < (int(sh_degree) + 1) ** 2:
             raise InputError(f"rasterize_2dgs: sh_degree={sh_degree} needs 0..3 and at least "
                              f"{(int(sh_degree) + 1) ** 2} coefficients, got {colors.shape[1]}")
-    try:
-        T = torch.as_tensor(T_cw if torch.is_tensor(T_cw) else np.asarray(T_cw, dtype=np.float64))
-    except (TypeError, ValueError) as e:
-        raise InputError(f"rasterize_2dgs: T_cw must be a 4x4 array ({e})") from None
-    if T.shape != (4, 4):
-        raise InputError(f"rasterize_2dgs: T_cw must be 4x4, got {tuple(T.shape)}")
-    if T.device.type == "meta" or not bool(torch.isfinite(T.detach()).all()):
-        raise InputError("rasterize_2dgs: T_cw has non-finite entries")
+    T = _finite_tensor("T_cw", T_cw, (4, 4))
     if pose_delta is not None:
-        if not torch.is_tensor(pose_delta):
-            try:
-                pose_delta = torch.as_tensor(np.asarray(pose_delta, dtype=np.float64))
-            except (TypeError, ValueError) as e:
-                raise InputError(f"rasterize_2dgs: pose_delta must be a (6,) array ({e})") from None
-        if tuple(pose_delta.shape) != (6,):
-            raise InputError(f"rasterize_2dgs: pose_delta must have shape (6,), got {tuple(pose_delta.shape)}")
-        if pose_delta.device.type == "meta" or not bool(torch.isfinite(pose_delta.detach()).all()):
-            raise InputError("rasterize_2dgs: pose_delta has non-finite entries")
+        pose_delta = _finite_tensor("pose_delta", pose_delta, (6,))
     if not (0 < near < far):
         raise InputError(f"rasterize_2dgs: need 0 < near < far, got near={near}, far={far}")
     return means, quats, scales, opacities, colors, T, pose_delta
