@@ -22,10 +22,18 @@ Experiments (``--exp``, comma separated; default all):
   ``../shared/data/kitti07_160``, at the working size ``vings run`` picks, mapped as outdoors
   when ``--pose-outdoor``).
 * ``storage``: street --loop drive (>= 300 m), few iterations per keyframe: active set vs cap, total
-  count, passive store spill, peak RSS, PSNR of the start region at first visit and after the loop.
+  count, passive store spill, peak RSS of the experiment, PSNR of the start region at first visit,
+  on the return (the first keyframe back within ``tau``: rendered right after the tiers reload the
+  region, before any training there, so it measures the round trip through the passive store) and
+  at the end of the loop (after retraining).
 * ``timing``: mapping time per keyframe at 376x240 with 50 iterations, split in add/train.
 
-Prints progress to stderr and ONE JSON object (keyed by experiment) as the last stdout line.
+PSNR figures are the mean of per-view PSNR (dB) over [0, 1] images, all pixels and channels
+(``*_surface_db``: only pixels with a surface). Timings per keyframe are add + train (pose refinement,
+when it runs, is reported apart).
+
+Prints progress to stderr and ONE JSON object (keyed by experiment) as the last stdout line, also
+when an experiment fails (its entry is then ``{"error": ...}``, listed in ``failed``, exit code 1).
 ``--quick`` shrinks everything for development (numbers are then not the reported ones).
 """
 from __future__ import annotations
@@ -56,7 +64,26 @@ def log(*a) -> None:
 
 
 def peak_rss_mb() -> float:
+    """Peak resident set size of this process (MB) since start or the last :func:`reset_peak_rss`."""
+    try:
+        with open("/proc/self/status") as f:
+            for line in f:
+                if line.startswith("VmHWM:"):
+                    return int(line.split()[1]) / 1024.0
+    except OSError:
+        pass
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+def reset_peak_rss() -> bool:
+    """Restart the peak-RSS count (Linux ``clear_refs`` 5), so one experiment's peak is not an
+    earlier experiment's; False where the system does not allow it (the peak is then the process's)."""
+    try:
+        with open("/proc/self/clear_refs", "w") as f:
+            f.write("5")
+        return True
+    except OSError:
+        return False
 
 
 # ------------------------------------------------------------------------------------ data
@@ -95,8 +122,9 @@ class SimSequence:
                         T_wc=torch.from_numpy(self.T_wc[i] if T_wc is None else T_wc), depth=d,
                         inv_depth_var=torch.zeros_like(d), valid=d > 0, camera=self.cam, index=i)
 
-    def path_length(self) -> float:
-        p = self.T_wc[:, :3, 3]
+    def path_length(self, n: int | None = None) -> float:
+        """Length (m) of the camera path over the first ``n`` frames (all by default)."""
+        p = self.T_wc[: self.n if n is None else n, :3, 3]
         return float(np.linalg.norm(np.diff(p, axis=0), axis=1).sum())
 
 
@@ -111,8 +139,15 @@ def eval_views(m: Mapper, seq: SimSequence, idx) -> dict:
         ps.append(psnr(r["color"], g))
         ss.append(ssim(r["color"], g))
         pm.append(psnr(r["color"], g, mask=depth > 0))
-    return {"psnr_db": float(np.mean(ps)), "ssim": float(np.mean(ss)), "psnr_surface_db": float(np.mean(pm)),
+    # mean of the per-view PSNR in dB (as the paper's tables); a perfect view (inf) or none at all
+    # gives null, not a non-JSON Infinity/NaN
+    return {"psnr_db": _finite_mean(ps), "ssim": _finite_mean(ss), "psnr_surface_db": _finite_mean(pm),
             "views": len(ps)}
+
+
+def _finite_mean(v) -> float | None:
+    m = float(np.mean(v)) if len(v) else float("nan")
+    return m if math.isfinite(m) else None
 
 
 def run_mapping(seq: SimSequence | None, cfg: MapperConfig, kf_idx, poses: dict | None = None,
@@ -148,18 +183,29 @@ def run_mapping(seq: SimSequence | None, cfg: MapperConfig, kf_idx, poses: dict 
              "cpu_s": time.process_time() - cpu_start,
              "cpu_per_kf_s": (time.process_time() - cpu_start) / max(1, len(kf_idx)),
              "load_avg_1m_end": os.getloadavg()[0],
+             # add + train; the simulator's rendering of the keyframe is outside, and so is pose
+             # refinement (reported apart, only when it ran); the first keyframe includes loading the
+             # compiled kernels, hence the median beside the mean
              "time_per_kf_s": float(np.mean(np.array(add_t) + np.array(train_t))),
+             "time_per_kf_median_s": float(np.median(np.array(add_t) + np.array(train_t))),
+             "time_scope": "add_keyframe + train per keyframe (excludes pose refinement and data generation)",
              "add_per_kf_s": float(np.mean(add_t)), "train_per_kf_s": float(np.mean(train_t)),
-             "refine_per_kf_s": float(np.mean(refine_t)), "num_gaussians": m.num_gaussians,
-             "counters": dict(m.counters)}
+             "num_gaussians": m.num_gaussians, "counters": dict(m.counters)}
+    if refine:
+        stats["refine_per_kf_s"] = float(np.mean(refine_t))
     return m, stats
 
 
 def split_views(n: int, kf_every: int, max_novel: int):
+    """Keyframes every ``kf_every``-th frame and novel views half-way between them (never a
+    keyframe: ``kf_every >= 2``), at most ``max_novel`` of them."""
+    if kf_every < 2:
+        raise ValueError(f"kf_every must be >= 2 (novel views lie between keyframes), got {kf_every}")
     kf = list(range(0, n, kf_every))
     novel = [i for i in range(n) if i % kf_every == kf_every // 2]
     if len(novel) > max_novel:
         novel = novel[:: int(math.ceil(len(novel) / max_novel))]
+    assert not set(kf) & set(novel)
     return kf, novel
 
 
@@ -185,9 +231,11 @@ def exp_score(a, cfg: MapperConfig, base: dict | None) -> dict:
     kf, novel = split_views(seq.n, a.kf_every, a.max_novel)
     res = {}
     variants = [("off", replace(cfg, score_manager=False))]
-    variants += [(f"{v:g}", replace(cfg, score_manager=True, sc_storage=v)) for v in a.sc_storage]
+    variants += [(f"{v:g}", replace(cfg, score_manager=True, sc_storage=v, sc_storage_per_view=True,
+                                    prune_window_owned_only=True)) for v in a.sc_storage]
     # S_C summed over the window (paper) instead of per viewing keyframe
-    variants += [(f"{v:g}_sum", replace(cfg, score_manager=True, sc_storage=v, sc_storage_per_view=False))
+    variants += [(f"{v:g}_sum", replace(cfg, score_manager=True, sc_storage=v, sc_storage_per_view=False,
+                                        prune_window_owned_only=True))
                  for v in a.sc_storage_sum]
     # the paper's storage rule on every Gaussian (not only those whose ID(g) is a window keyframe)
     variants += [(f"{v:g}_all", replace(cfg, score_manager=True, sc_storage=v, prune_window_owned_only=False,
@@ -265,7 +313,7 @@ def exp_pose(a, cfg: MapperConfig) -> dict:
             res["initial"] = _kf_errors(m, seq, kf)
         err = _kf_errors(m, seq, kf)
         ek = eval_views(m, seq, kf)
-        res[mode] = {**err, "psnr_keyframes_db": ek["psnr_db"], "refine_per_kf_s": st["refine_per_kf_s"]}
+        res[mode] = {**err, "psnr_keyframes_db": ek["psnr_db"], "refine_per_kf_s": st.get("refine_per_kf_s", 0.0)}
         log(f"pose[{mode}]:", res[mode])
         m.close()
     return {"frames": seq.n, "keyframes": len(kf), "noise": {"trans_m": a.noise_trans, "rot_deg": a.noise_rot},
@@ -304,8 +352,9 @@ def exp_frontend(a, cfg: MapperConfig) -> dict:
     from vings_core.pipeline import RunConfig, SlamRunner
     src_dir = _room_dir(a, a.frontend_frames)
     out_dir = tempfile.mkdtemp(prefix="vings_bench_frontend_run_")
-    runner = SlamRunner(_open(a, src_dir), out_dir, params_file=a.params,
-                        run_cfg=RunConfig(sync=True, width=a.width, height=a.height), progress=False)
+    from vings_core.config import load_section
+    run_cfg = replace(load_section(RunConfig, "run", a.params), sync=True, width=a.width, height=a.height)
+    runner = SlamRunner(_open(a, src_dir), out_dir, params_file=a.params, run_cfg=run_cfg, progress=False)
     runner.mapper.close()
     runner.mapper = Mapper(cfg)
     t0 = time.perf_counter()
@@ -338,7 +387,7 @@ def _frontend_keyframes(a, frames: int) -> tuple[list, dict]:
         from vings_core.pipeline import open_working_source
         src = open_working_source(a.pose_source, SourceOptions())
         if src.gt_camera_trajectory() is None:
-            raise SystemExit(f"--pose-source {a.pose_source}: the recording has no ground-truth poses")
+            raise ValueError(f"--pose-source {a.pose_source}: the recording has no ground-truth poses")
     else:
         src = _open(a, _room_dir(a, max(frames, a.frontend_frames)))
     fe = Frontend(load_section(FrontendConfig, "frontend", a.params), src.calibration.camera)
@@ -387,7 +436,7 @@ def exp_pose_frontend(a, cfg: MapperConfig) -> dict:
         r = _errors_vs_gt(m.keyframe_poses(), gt)
         cam = kfs[0].camera
         ps = [psnr(m.render(m.keyframe_poses()[k.stamp_ns], cam)["color"], k.image.numpy()) for k in kfs]
-        res[mode] = {**r, "psnr_keyframes_db": float(np.mean(ps)), "refine_per_kf_s": st["refine_per_kf_s"]}
+        res[mode] = {**r, "psnr_keyframes_db": float(np.mean(ps)), "refine_per_kf_s": st.get("refine_per_kf_s", 0.0)}
         log(f"pose_fe[{mode}]:", res[mode])
         m.close()
     return {"source": a.pose_source or "room", "frames": a.pose_frames, "keyframes": len(kfs),
@@ -400,8 +449,12 @@ def exp_storage(a, cfg: MapperConfig) -> dict:
     seq = SimSequence("street", None, a.width, a.height, loop=True, length_m=a.street_length, cache=False)
     n = seq.n if a.street_frames is None else min(seq.n, a.street_frames)
     kf = list(range(0, n, a.street_kf_every))
-    L = seq.path_length()
-    log(f"storage: street loop {L:.0f} m, {seq.n} frames, {len(kf)} keyframes")
+    L = seq.path_length(n)             # the route actually mapped (--street-frames may cut the loop)
+    start = seq.T_wc[0, :3, 3]
+    loop_closed = bool(np.linalg.norm(seq.T_wc[n - 1, :3, 3] - start) < 0.05 * max(L, 1e-9))
+    rss_reset = reset_peak_rss()
+    log(f"storage: street loop {L:.0f} m mapped ({seq.path_length():.0f} m route), {n} of {seq.n} frames, "
+        f"{len(kf)} keyframes, loop closed: {loop_closed}")
     c = replace(cfg, iters_per_keyframe=a.street_iters, outdoor=True, max_active=a.max_active, tau=a.tau,
                 delta_k=a.delta_k, passive_memory_mb=a.passive_mb, points_per_keyframe=a.street_points)
     m = Mapper(c)
@@ -409,9 +462,21 @@ def exp_storage(a, cfg: MapperConfig) -> dict:
     for i in start_views:
         seq.view(i, keep=True)
     first_visit = None
+    on_return = None
+    left = False
     trace = []
     t0 = time.perf_counter()
     for k, i in enumerate(kf):
+        d_start = float(np.linalg.norm(seq.T_wc[i, :3, 3] - start))
+        left = left or d_start > 2 * c.tau
+        if left and on_return is None and d_start < c.tau:
+            # first keyframe back within tau of the start: the tiers bring the start region back
+            # from the passive store; its views are rendered BEFORE any training on the return, so
+            # the figure is the round trip's (active -> passive -> spilled -> reloaded), not a rebuild
+            tin = m.update_tiers(seq.T_wc[i])
+            on_return = {**eval_views(m, seq, start_views), "kf": k, "frame": i,
+                         "distance_to_start_m": d_start, "tier_in": tin["tier_in"]}
+            log("storage: start region on the return, before retraining:", on_return)
         m.add_keyframe(seq.keyframe(i))
         m.train()
         trace.append({"kf": k, "frame": i, "active": m.num_active, "passive": m.num_passive,
@@ -422,13 +487,18 @@ def exp_storage(a, cfg: MapperConfig) -> dict:
             log("storage: first visit of the start region:", first_visit)
         if k % 10 == 0:
             log(f"storage kf {k + 1}/{len(kf)}: {trace[-1]}")
-    # back at the start: the camera is where it began, the tiers bring the start region back
+    # the end of the loop (after retraining on the return)
     m.update_tiers(seq.T_wc[n - 1])
     back = eval_views(m, seq, start_views)
     log("storage: after the loop:", back)
+
+    def drop(first, later, key):
+        return (first[key] - later[key]) if first and later and first[key] is not None \
+            and later[key] is not None else None
     act = np.array([t["active"] for t in trace])
     tot = np.array([t["total"] for t in trace])
-    res = {"route_m": L, "frames": n, "keyframes": len(kf), "iters_per_keyframe": c.iters_per_keyframe,
+    res = {"route_m": L, "loop_closed": loop_closed, "frames": n, "keyframes": len(kf),
+           "iters_per_keyframe": c.iters_per_keyframe,
            "max_active": c.max_active, "tau_m": c.tau, "active_max": int(act.max()),
            "active_under_cap": bool((act <= c.max_active).all()), "total_final": int(tot[-1]),
            "total_max": int(tot.max()), "total_exceeds_active_max": bool(tot[-1] > act.max()),
@@ -436,13 +506,18 @@ def exp_storage(a, cfg: MapperConfig) -> dict:
            "chunks_loaded_from_disk": m.passive.loaded_total,
            "passive_disk_mb_max": float(max(t["passive_disk_mb"] for t in trace)),
            "passive_memory_budget_mb": c.passive_memory_mb, "peak_rss_mb": peak_rss_mb(),
+           "peak_rss_scope": "this experiment" if rss_reset else "whole process (run --exp storage alone)",
            "first_visit_psnr_db": first_visit["psnr_db"] if first_visit else None,
-           "revisit_psnr_db": back["psnr_db"],
-           "revisit_drop_db": (first_visit["psnr_db"] - back["psnr_db"]) if first_visit else None,
            "first_visit_psnr_surface_db": first_visit["psnr_surface_db"] if first_visit else None,
-           "revisit_psnr_surface_db": back["psnr_surface_db"],
-           "revisit_drop_surface_db": (first_visit["psnr_surface_db"] - back["psnr_surface_db"])
-           if first_visit else None,
+           # on the return, before retraining: what the round trip through the passive store kept
+           "return": on_return,
+           "return_drop_db": drop(first_visit, on_return, "psnr_db"),
+           "return_drop_surface_db": drop(first_visit, on_return, "psnr_surface_db"),
+           # at the end of the loop, after the return keyframes trained the region again
+           "revisit_psnr_db": back["psnr_db"] if loop_closed else None,
+           "revisit_drop_db": drop(first_visit, back, "psnr_db") if loop_closed else None,
+           "revisit_psnr_surface_db": back["psnr_surface_db"] if loop_closed else None,
+           "revisit_drop_surface_db": drop(first_visit, back, "psnr_surface_db") if loop_closed else None,
            "wall_s": time.perf_counter() - t0,
            "trace_every_10": trace[::10]}
     m.close()
@@ -467,7 +542,8 @@ def exp_timing(a, cfg: MapperConfig, room: dict | None) -> dict:
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--exp", default="room,frontend,score,pose,pose_frontend,storage,timing")
+    p.add_argument("--exp", default="room,frontend,score,pose,pose_frontend,storage,timing",
+                   help="comma-separated experiments (run in the order of the default)")
     p.add_argument("--quick", action="store_true", help="small sizes for development")
     p.add_argument("--params", default=None, help="ROS params YAML with a 'mapping' section")
     p.add_argument("--width", type=int, default=376)
@@ -505,9 +581,20 @@ def main(argv=None) -> int:
                         "run; numba uses its own). The OpenMP environment (OMP_WAIT_POLICY) is left as "
                         "the caller set it: forcing PASSIVE made mapping 10-40 %% slower here")
     a = p.parse_args(argv)
-    a.sc_storage = [float(v) for v in a.sc_storage.split(",") if v]
-    a.sc_storage_all = [float(v) for v in a.sc_storage_all.split(",") if v]
-    a.sc_storage_sum = [float(v) for v in a.sc_storage_sum.split(",") if v]
+    for name in ("sc_storage", "sc_storage_all", "sc_storage_sum"):
+        try:
+            setattr(a, name, [float(v) for v in getattr(a, name).split(",") if v.strip()])
+        except ValueError:
+            p.error(f"--{name.replace('_', '-')}: expected comma-separated numbers, got {getattr(a, name)!r}")
+    exps = [e.strip() for e in a.exp.split(",") if e.strip()]
+    unknown = [e for e in exps if e not in EXPERIMENTS]
+    if unknown or not exps:
+        p.error(f"--exp: unknown experiment(s) {unknown or a.exp!r}; choose from {', '.join(EXPERIMENTS)}")
+    if a.kf_every < 2:
+        p.error("--kf-every must be >= 2 (novel views lie between keyframes)")
+    for name in ("max_novel", "street_kf_every", "street_iters", "street_points", "max_active", "delta_k"):
+        if getattr(a, name) < 1:
+            p.error(f"--{name.replace('_', '-')} must be >= 1")
     if a.quick:
         a.room_frames = min(a.room_frames, 40)
         a.score_frames = min(a.score_frames, 30)
@@ -521,29 +608,60 @@ def main(argv=None) -> int:
     cfg = load_section(MapperConfig, "mapping", a.params)
     if a.quick:
         cfg = replace(cfg, iters_per_keyframe=min(cfg.iters_per_keyframe, 20))
-    exps = [e.strip() for e in a.exp.split(",") if e.strip()]
+    for e, frames in (("room", a.room_frames), ("score", a.score_frames), ("pose", a.pose_frames)):
+        if e in exps and (frames + a.kf_every - 1) // a.kf_every < 3:
+            p.error(f"--exp {e}: {frames} frames at --kf-every {a.kf_every} give fewer than 3 keyframes")
     out: dict = {"config": {k: v for k, v in vars(a).items()}, "load_avg_1m_start": os.getloadavg()[0],
                  "torch_threads": torch.get_num_threads(), "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY", "")}
     room = None
-    if "room" in exps:
+
+    def room_exp():
+        nonlocal room
         room, m, _ = exp_room(a, cfg)
         m.close()
-        out["room"] = room
-    if "frontend" in exps:
-        out["frontend"] = exp_frontend(a, cfg)
-    if "score" in exps:
-        out["score"] = exp_score(a, cfg, room)
-    if "pose" in exps:
-        out["pose"] = exp_pose(a, cfg)
-    if "pose_frontend" in exps:
-        out["pose_frontend"] = exp_pose_frontend(a, cfg)
-    if "storage" in exps:
-        out["storage"] = exp_storage(a, cfg)
-    if "timing" in exps:
-        out["timing"] = exp_timing(a, cfg, room)
-    out["peak_rss_mb"] = peak_rss_mb()
-    print(json.dumps(out, default=float))
-    return 0
+        return room
+
+    run = {"room": room_exp, "frontend": lambda: exp_frontend(a, cfg), "score": lambda: exp_score(a, cfg, room),
+           "pose": lambda: exp_pose(a, cfg), "pose_frontend": lambda: exp_pose_frontend(a, cfg),
+           "storage": lambda: exp_storage(a, cfg), "timing": lambda: exp_timing(a, cfg, room)}
+    failed = []
+    try:
+        # in a fixed order (timing reuses the room run); one failing experiment leaves the others'
+        # figures in the JSON, with its error in its place
+        for e in EXPERIMENTS:
+            if e not in exps:
+                continue
+            try:
+                out[e] = run[e]()
+            except Exception as err:  # noqa: BLE001 - reported in the JSON, exit code 1
+                failed.append(e)
+                out[e] = {"error": f"{type(err).__name__}: {err}"}
+                log(f"{e}: FAILED: {type(err).__name__}: {err}")
+    finally:
+        out["failed"] = failed
+        out["peak_rss_mb"] = peak_rss_mb()
+        print(json.dumps(_json_safe(out)), flush=True)
+    return 1 if failed else 0
+
+
+EXPERIMENTS = ("room", "frontend", "score", "pose", "pose_frontend", "storage", "timing")
+
+
+def _json_safe(v):
+    """Plain JSON (no NaN/Infinity, numpy scalars as numbers)."""
+    if isinstance(v, dict):
+        return {str(k): _json_safe(x) for k, x in v.items()}
+    if isinstance(v, (list, tuple)):
+        return [_json_safe(x) for x in v]
+    if isinstance(v, (np.floating, float)):
+        return float(v) if math.isfinite(float(v)) else None
+    if isinstance(v, np.integer):
+        return int(v)
+    if isinstance(v, np.bool_):
+        return bool(v)
+    if isinstance(v, (str, int, bool)) or v is None:
+        return v
+    return str(v)
 
 
 if __name__ == "__main__":

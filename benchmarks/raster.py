@@ -17,14 +17,16 @@ would be without the contention). `bwd_raster_ms` / `bwd_raster_sampled_ms`: the
 rasterizer's own part of the backward (pixel selection + tile kernel + per-Gaussian reduction),
 i.e. what the paper's "sample rasterizer" ablation times. `pairs_per_s`: pixel-Gaussian alpha
 evaluations of the forward per second of `fwd_ms`. `gaussians_per_pixel`: mean number of Gaussians composited
-per pixel. The reference is the pure-torch renderer with per-tile culling (same output as dense).
+per pixel. The reference is the pure-torch renderer with per-tile culling (same output as dense),
+timed on the same scene and loss: one warm-up run, then the median of 3.
 `bwd_speedup_sampled` (wall), `bwd_speedup_sampled_cpu` (process CPU) and
 `bwd_raster_speedup_sampled` (rasterizer share only) are full / sampled backward time ratios.
 On a loaded machine run with NUMBA_NUM_THREADS=1 as well: the CPU-time ratio of one thread is far
 less disturbed than the wall time of two threads that other jobs keep descheduling.
 
 Usage: python benchmarks/raster.py [--repeat 7] [--sizes 10k,100k,300k] [--no-ref]
-Last line of output: one JSON object.
+Per-size progress lines go to stderr; the last stdout line is one JSON object keyed by size, also
+when a size fails (its entry is then ``{"error": ...}`` and the exit code 1).
 """
 from __future__ import annotations
 
@@ -186,7 +188,7 @@ def bench_size(name: str, n: int, repeat: int, with_ref: bool) -> dict:
                                     leaves["opacities"], leaves["colors"], torch.tensor(T_cw),
                                     cam, tile_cull=True)
         rf, rb = [], []
-        for _ in range(2):
+        for k in range(4):      # one warm-up, then the median of 3 (the fast path's statistic)
             t0 = time.perf_counter()
             r = ref_fwd()
             rf.append((time.perf_counter() - t0) * 1e3)
@@ -197,9 +199,10 @@ def bench_size(name: str, n: int, repeat: int, with_ref: bool) -> dict:
             loss.backward()
             rb.append((time.perf_counter() - t0) * 1e3)
             del r, loss
-        res["ref_fwd_ms"] = round(min(rf), 1)
-        res["ref_bwd_ms"] = round(min(rb), 1)
-        res["speedup_fwd_bwd_vs_ref"] = round((min(rf) + min(rb)) / (res["fwd_ms"] + res["bwd_ms"]), 1)
+        rf, rb = rf[1:], rb[1:]
+        res["ref_fwd_ms"] = round(med(rf), 1)
+        res["ref_bwd_ms"] = round(med(rb), 1)
+        res["speedup_fwd_bwd_vs_ref"] = round((med(rf) + med(rb)) / (res["fwd_ms"] + res["bwd_ms"]), 1)
     res["bwd_speedup_sampled"] = round(res["bwd_ms"] / res["bwd_sampled_ms"], 2)
     res["bwd_speedup_sampled_cpu"] = round(res["bwd_cpu_ms"] / res["bwd_sampled_cpu_ms"], 2)
     res["bwd_raster_speedup_sampled"] = round(res["bwd_raster_ms"] / res["bwd_raster_sampled_ms"], 2)
@@ -214,17 +217,28 @@ def main(argv=None) -> int:
     ap.add_argument("--sizes", default="10k,100k,300k")
     ap.add_argument("--no-ref", action="store_true", help="skip the pure-torch reference at 10k")
     args = ap.parse_args(argv)
+    sizes = [s.strip() for s in args.sizes.split(",") if s.strip()]
+    bad = [s for s in sizes if s not in SIZES]
+    if bad or not sizes:
+        ap.error(f"--sizes: unknown size(s) {bad or args.sizes!r}; choose from {', '.join(SIZES)}")
+    if args.repeat < 1:
+        ap.error("--repeat must be >= 1")
     torch.set_grad_enabled(True)
     results = {}
-    for name in args.sizes.split(","):
-        if name not in SIZES:
-            print(f"unknown size {name!r}; choose from {list(SIZES)}", file=sys.stderr)
-            return 2
-        r = bench_size(name, SIZES[name], args.repeat, with_ref=(name == "10k" and not args.no_ref))
-        print(f"{name}: {json.dumps(r)}", flush=True)
-        results[name] = r
-    print(json.dumps(results))
-    return 0
+    failed = False
+    try:
+        for name in sizes:
+            try:
+                r = bench_size(name, SIZES[name], args.repeat, with_ref=(name == "10k" and not args.no_ref))
+            except Exception as err:  # noqa: BLE001 - reported in the JSON, exit code 1
+                failed = True
+                r = {"error": f"{type(err).__name__}: {err}"}
+            print(f"{name}: {json.dumps(r)}", file=sys.stderr, flush=True)
+            results[name] = r
+    finally:
+        # one JSON object as the last stdout line, also after a failure or Ctrl-C
+        print(json.dumps(results), flush=True)
+    return 1 if failed else 0
 
 
 if __name__ == "__main__":

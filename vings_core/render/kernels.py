@@ -15,7 +15,7 @@ that cross product from precomputed, centred line coordinates (see :func:`prepro
 * ``rho2 = 2 |(x, y) - mean2d|^2`` (screen-space low-pass filter, sigma = sqrt(2)/2 px);
 * the smaller of the two is used (``G = max(G3, G2)`` as in 2DGS), with the centre depth
   ``M[2,2]`` as depth in the low-pass case; ``alpha = min(0.99, o exp(-rho/2))``, skipped when
-  ``< 1/255``; compositing stops before a Gaussian that would take ``T`` below ``1e-4``.
+  ``< 1/255``; compositing stops before a Gaussian that would take ``T`` below ``1e-4`` (see ``T_MIN``).
 
 Work is split in 16x16 tiles (``prange`` over tiles; callers set a parallel chunk size of one
 tile, see :func:`tile_parallel`, so uneven tiles balance dynamically). Inside a tile
@@ -38,7 +38,10 @@ TILE = 16
 TILE_PIX = TILE * TILE
 ALPHA_MIN = 1.0 / 255.0
 ALPHA_MAX = 0.99
-T_MIN = 1e-4
+# compositing stops before a Gaussian that would take T below 1e-4 (3DGS/gsplat); the threshold sits
+# a hair below 1e-4 because two clamped splats leave exactly (1 - ALPHA_MAX)^2 = 1e-4, which float32
+# rounds below and float64 above: a boundary that common must not depend on the precision
+T_MIN = 1e-4 * (1.0 - 1e-5)
 DIST_NEAR = 0.2     # 2DGS's depth mapping for the distortion term
 DIST_FAR = 100.0
 BBOX_PAD = 1e-2     # px, guards the exact bounding box against rounding

@@ -3,7 +3,7 @@
 It states the same image model as the numba kernels in a different way, so the two check each
 other: the pixel ray ``r = K^-1 (x, y, 1)`` is intersected with the surfel plane in the camera
 frame (``X = r (n . p_c) / (n . r)``), and the hit point is expressed in the splat's tangent axes
-(``u = t_u . (X - p_c) / s_u``), instead of the homogeneous-plane algebra on ``M`` of the kernels.
+(``X - p_c = u s_u t_u + v s_v t_v``), instead of the homogeneous-plane algebra on ``M`` of the kernels.
 Compositing is dense: every Gaussian x every pixel, with cumulative products. With ``tile_cull``
 the pixels are processed per 16x16 tile, each with the Gaussians whose (torch-computed,
 conservative) screen box touches it; the result is identical, only faster and lighter. Only for
@@ -39,18 +39,29 @@ def _composite(xy: torch.Tensor, p_c: torch.Tensor, Rc: torch.Tensor, scales: to
     p_c, Rc, scales, opac, rgb, normals = (a[order] for a in (p_c, Rc, scales, opac, rgb, normals))
     rays = torch.stack([(xy[:, 0] - cam.cx) / cam.fx, (xy[:, 1] - cam.cy) / cam.fy,
                         torch.ones(P, dtype=dt)], -1)                         # (P, 3)
-    n_plane = Rc[:, :, 2]                                                     # (N, 3)
+    # the splat plane is spanned by its scaled tangent axes a, b (orthonormal frame times scales,
+    # unless T_cw itself carries a non-rigid perturbation, as in a raw T_cw gradient)
+    a = Rc[:, :, 0] * scales[:, 0:1]
+    b = Rc[:, :, 1] * scales[:, 1:2]
+    n_plane = torch.linalg.cross(a, b)                                        # (N, 3)
     denom = n_plane @ rays.T                                                  # (N, P)
     ok = denom != 0
     denom_s = torch.where(ok, denom, torch.ones_like(denom))
     t_hit = (n_plane * p_c).sum(-1, keepdim=True) / denom_s                   # (N, P) = hit z
     X = t_hit[..., None] * rays[None]                                         # (N, P, 3)
     d = X - p_c[:, None, :]
-    u = (d * Rc[:, None, :, 0]).sum(-1) / scales[:, 0:1]
-    v = (d * Rc[:, None, :, 1]).sum(-1) / scales[:, 1:2]
+    # splat coordinates: d = u a + v b, solved through the 2x2 normal equations
+    gaa, gab, gbb = (a * a).sum(-1, keepdim=True), (a * b).sum(-1, keepdim=True), (b * b).sum(-1, keepdim=True)
+    da, db = (d * a[:, None, :]).sum(-1), (d * b[:, None, :]).sum(-1)
+    det = gaa * gbb - gab * gab
+    u = (gbb * da - gab * db) / det
+    v = (gaa * db - gab * da) / det
     rho3 = u * u + v * v
-    mx = cam.fx * p_c[:, 0] / p_c[:, 2] + cam.cx
-    my = cam.fy * p_c[:, 1] / p_c[:, 2] + cam.cy
+    # centres at or behind the near plane are culled below; a safe z keeps their (unused) screen
+    # position finite, else 0 * inf would put NaN into the gradients
+    zc = torch.where(p_c[:, 2] > near, p_c[:, 2], torch.ones_like(p_c[:, 2]))
+    mx = cam.fx * p_c[:, 0] / zc + cam.cx
+    my = cam.fy * p_c[:, 1] / zc + cam.cy
     rho2 = 2.0 * ((xy[None, :, 0] - mx[:, None]) ** 2 + (xy[None, :, 1] - my[:, None]) ** 2)
     use3 = ok & (t_hit > near) & (rho3 < rho2)
     rho = torch.where(use3, rho3, rho2)
@@ -69,7 +80,9 @@ def _composite(xy: torch.Tensor, p_c: torch.Tensor, Rc: torch.Tensor, scales: to
     out_depth = (w * depth).sum(0)
     out_normal = w.T @ normals
     out_alpha = 1.0 - T_final
-    m = DIST_FAR / (DIST_FAR - DIST_NEAR) * (1.0 - DIST_NEAR / depth)
+    # where nothing is composited the depth may be 0 (a centre in the camera plane): 0 * inf = NaN
+    depth_m = torch.where(w > 0, depth, torch.ones_like(depth))
+    m = DIST_FAR / (DIST_FAR - DIST_NEAR) * (1.0 - DIST_NEAR / depth_m)
     wm, wm2 = w * m, w * m * m
     d1_prev = torch.cumsum(wm, 0) - wm
     d2_prev = torch.cumsum(wm2, 0) - wm2

@@ -1,0 +1,59 @@
+"""The benchmark scripts' command lines and JSON output (no benchmark is run here)."""
+from __future__ import annotations
+
+import importlib.util
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _load(name: str):
+    spec = importlib.util.spec_from_file_location(f"bench_{name}", ROOT / "benchmarks" / f"{name}.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+@pytest.mark.parametrize("argv", [["--exp", "bogus"], ["--exp", "room", "--kf-every", "1"],
+                                  ["--sc-storage", "a"], ["--exp", "pose", "--quick", "--kf-every", "15"],
+                                  ["--max-novel", "0"]])
+def test_mapping_benchmark_refuses_bad_arguments(argv, capsys):
+    with pytest.raises(SystemExit) as e:
+        _load("mapping").main(argv)
+    assert e.value.code == 2
+    assert "error:" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("argv", [["--sizes", "10k,1M"], ["--repeat", "0"]])
+def test_raster_benchmark_refuses_bad_arguments_before_running(argv, capsys):
+    with pytest.raises(SystemExit) as e:
+        _load("raster").main(argv)
+    assert e.value.code == 2
+    assert "error:" in capsys.readouterr().err
+
+
+def test_mapping_benchmark_prints_json_when_an_experiment_fails(capsys, tmp_path):
+    rc = _load("mapping").main(["--exp", "pose_frontend", "--pose-source", str(tmp_path / "missing")])
+    assert rc == 1
+    last = capsys.readouterr().out.strip().splitlines()[-1]
+    res = json.loads(last)
+    assert res["failed"] == ["pose_frontend"] and "error" in res["pose_frontend"]
+
+
+def test_novel_views_are_never_keyframes_and_json_is_strict():
+    m = _load("mapping")
+    kf, novel = m.split_views(40, 2, 100)
+    assert kf and novel and not set(kf) & set(novel)
+    with pytest.raises(ValueError):
+        m.split_views(40, 1, 100)
+    out = m._json_safe({"a": float("inf"), "b": [np.float32(1.5), np.int64(3), np.bool_(True)],
+                        "c": float("nan")})
+    assert out == {"a": None, "b": [1.5, 3, True], "c": None}
+    json.dumps(out, allow_nan=False)
+    assert m._finite_mean([]) is None and m._finite_mean([1.0, 3.0]) == 2.0
+    assert not math.isnan(m.peak_rss_mb())
