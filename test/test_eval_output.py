@@ -102,7 +102,7 @@ def test_run_output_rejects_file_path(tmp_path):
         RunOutput(f)
 
 
-def test_prepare_checks_the_folder_and_clears_a_previous_runs_marker(tmp_path):
+def test_prepare_checks_the_folder_and_the_end_clears_a_previous_runs_marker(tmp_path):
     f = tmp_path / "file"
     f.write_text("x")
     with pytest.raises(InputError, match="cannot write to the output folder"):
@@ -110,10 +110,13 @@ def test_prepare_checks_the_folder_and_clears_a_previous_runs_marker(tmp_path):
     out = RunOutput(tmp_path / "o")
     out.write_metrics(metrics_template())
     out.save_render("kf_1", np.zeros((4, 4, 3), np.uint8))
+    out.save_render("figure", np.zeros((4, 4, 3), np.uint8))
     (out.renders_dir / "notes.txt").write_text("mine")
-    out.prepare()                                # a new run into the same folder
+    out.prepare()                                # a new run into the same folder: nothing removed yet
+    assert out.metrics_path.exists() and (out.renders_dir / "kf_1.png").exists()
+    out.begin_final()                            # its final outputs come next
     assert not out.metrics_path.exists()         # no stale "complete run" marker
-    assert sorted(p.name for p in out.renders_dir.iterdir()) == ["notes.txt"]
+    assert sorted(p.name for p in out.renders_dir.iterdir()) == ["figure.png", "notes.txt"]
 
 
 def test_outputs_get_the_umask_mode_not_0600(tmp_path):
@@ -183,3 +186,128 @@ def test_gt_poses_mode_never_extrapolates_or_bridges_gaps():
     assert k.pose(75_000_000) is None             # inside the 50 ms gap
     assert k.pose(-50_000_000) is None and k.pose(400_000_000) is None    # outside the span
     assert k.pose(147_000_000) is not None        # 2 ms after the last sample: nearest within 10 ms
+
+
+def _room_source(tmp_path, frames=24):
+    from vings_core.io import open_source
+    from vings_core.sim import generate
+    d = tmp_path / f"room{frames}"
+    if not d.exists():
+        generate("room", d, frames=frames, width=192, height=128, seed=5, mcap=False)
+    return open_source(d)
+
+
+def _fast_params(tmp_path, iters=2):
+    p = tmp_path / f"p{iters}.yaml"
+    p.write_text("/**:\n  ros__parameters:\n    mapping:\n      iters_per_keyframe: "
+                 f"{iters}\n      points_per_keyframe: 1500\n      refine_iters: 2\n")
+    return str(p)
+
+
+def _failing(src, at):
+    from vings_core.errors import InputError as _IE
+    frames = src.frames
+
+    def gen():
+        for i, f in enumerate(frames()):
+            if i == at:
+                raise _IE(f"frame {at}: corrupt image (test)")
+            yield f
+    src.frames = gen
+    return src
+
+
+def test_failed_rerun_keeps_the_previous_complete_run(tmp_path):
+    """A second run into the same folder that fails part-way leaves the first run's outputs
+    complete and readable (nothing removed up front), and writes its trajectory so far beside
+    them; a later successful run replaces everything and removes the partial files, but not
+    files of the user's in renders/."""
+    from vings_core.pipeline import RunConfig, SlamRunner
+    out = tmp_path / "out"
+    cfg = RunConfig(sync=True, eval_keyframes=2, eval_novel=1, save_renders=2, checkpoint_every=1)
+    first = SlamRunner(_room_source(tmp_path, 40), out, _fast_params(tmp_path), cfg, progress=False).run()
+    (out / "renders" / "figure1.png").write_bytes(b"mine")
+    before = {p.name: p.read_bytes() for p in out.iterdir() if p.is_file()}
+    renders = sorted(p.name for p in (out / "renders").iterdir())
+    assert {"metrics.json", "trajectory.tum", "keyframes.tum", "map.ply", "checkpoint.pt"} <= set(before)
+    assert not (out / "checkpoint.partial.pt").exists()
+    r = SlamRunner(_failing(_room_source(tmp_path, 40), 36), out, _fast_params(tmp_path), cfg, progress=False)
+    with pytest.raises(InputError, match="frame 36"):
+        r.run()
+    for name, data in before.items():
+        assert (out / name).read_bytes() == data, name
+    assert sorted(p.name for p in (out / "renders").iterdir()) == renders
+    assert json.loads((out / "metrics.json").read_text())["frames"] == first["frames"]
+    part = (out / "trajectory.partial.tum").read_text().splitlines()
+    assert 5 < len(part) <= 37 and len((out / "keyframes.partial.tum").read_text().splitlines()) > 1
+    assert (out / "checkpoint.partial.pt").exists()     # the new run's map, as of a keyframe
+    SlamRunner(_room_source(tmp_path, 40), out, _fast_params(tmp_path), cfg, progress=False).run()
+    names = {p.name for p in out.iterdir()}
+    assert not {n for n in names if ".partial." in n}, names
+    assert (out / "renders" / "figure1.png").read_bytes() == b"mine"
+
+
+def test_run_without_keyframes_still_creates_renders_folder(tmp_path):
+    from vings_core.pipeline import RunConfig, SlamRunner
+    src = _room_source(tmp_path, frames=3)
+    m = SlamRunner(src, tmp_path / "o", _fast_params(tmp_path), RunConfig(sync=True), progress=False).run()
+    assert m["keyframes"] == 0 and (tmp_path / "o" / "renders").is_dir()
+
+
+def test_gt_poses_run_reports_no_ate_of_the_ground_truth_against_itself(tmp_path):
+    from vings_core.pipeline import RunConfig, SlamRunner
+    m = SlamRunner(_room_source(tmp_path), tmp_path / "o", _fast_params(tmp_path),
+                   RunConfig(sync=True, gt_poses=True, eval_keyframes=1, eval_novel=1), progress=False).run()
+    assert m["keyframes"] >= 2 and m["frames_tracked"] > 0
+    assert m["ate_sim3_m"] is None and m["sim3_scale"] is None and m["rpe"] is None
+    assert m["psnr_keyframes_db"] is not None
+
+
+def test_ctrl_c_while_the_mapper_drains_its_queue_stops_it(tmp_path):
+    """Ctrl-C after tracking ended, while the main thread waits for the mapper's backlog: the
+    queue is dropped, the mapper thread has left before run() returns (else the interpreter
+    aborts), and the trajectory so far is kept."""
+    import signal
+    import threading
+    from vings_core.pipeline import RunConfig, SlamRunner
+    r = SlamRunner(_room_source(tmp_path, frames=40), tmp_path / "o", _fast_params(tmp_path, iters=300),
+                   RunConfig(sync=False, checkpoint_every=0), progress=False)
+    stop = r._stop_worker
+
+    def interrupted_wait(worker):
+        threading.Timer(0.5, signal.pthread_kill, (threading.main_thread().ident, signal.SIGINT)).start()
+        stop(worker)
+    r._stop_worker = interrupted_wait
+    with pytest.raises(KeyboardInterrupt):
+        r.run()
+    assert r._mapper_done.is_set() and r._abort
+    assert len(r.mapper.keyframe_poses()) < len(r._kf_stamps)
+    assert (tmp_path / "o" / "trajectory.partial.tum").exists()
+    assert not (tmp_path / "o" / "metrics.json").exists()
+
+
+def test_user_error_in_the_mapper_thread_is_one_line(tmp_path, caplog, monkeypatch):
+    """A VingsError raised in the concurrent mapper (disk full while checkpointing) reaches the
+    caller unchanged, without a traceback in the log (as in --sync)."""
+    from vings_core.errors import VingsError
+    from vings_core.pipeline import RunConfig, SlamRunner
+    r = SlamRunner(_room_source(tmp_path), tmp_path / "o", _fast_params(tmp_path),
+                   RunConfig(sync=False, checkpoint_every=1), progress=False)
+
+    def full(path):
+        raise VingsError(f"{path}: no space left on device (test)")
+    monkeypatch.setattr(r.mapper, "save_checkpoint", full)
+    with caplog.at_level("DEBUG", logger="vings.run"):
+        with pytest.raises(VingsError, match="no space left") as e:
+            r.run()
+    assert "mapper failed" not in str(e.value)
+    assert not [rec for rec in caplog.records if rec.levelname == "ERROR"]
+
+
+@pytest.mark.parametrize("field,value", [("gt_kf_max_gap", 0), ("gt_kf_trans_m", -0.1),
+                                         ("gt_kf_rot_deg", float("nan")), ("gt_inv_depth_var", -5.0),
+                                         ("checkpoint_every", -3)])
+def test_run_config_refuses_nonsense(field, value):
+    from vings_core.pipeline import RunConfig
+    with pytest.raises(ValueError, match=field):
+        RunConfig(**{field: value}).validate()

@@ -18,6 +18,7 @@ ground-truth depth (sources that have both), for mapping benchmarks.
 from __future__ import annotations
 
 import logging
+import math
 import queue
 import threading
 import time
@@ -39,7 +40,7 @@ from .types import Frame, Keyframe, Trajectory
 
 log = logging.getLogger("vings.run")
 
-CHECKPOINT_FILE = "checkpoint.pt"
+CHECKPOINT_FILE = "checkpoint.pt"     # (also RunOutput.checkpoint_path)
 WRITEBACK_POLICIES = ("none", "all", "consistent")
 
 
@@ -88,6 +89,14 @@ class RunConfig:
             raise ValueError(f"writeback_confidence must be in (0, 1), got {self.writeback_confidence}")
         if self.eval_keyframes < 0 or self.eval_novel < 0 or self.save_renders < 0:
             raise ValueError("eval_keyframes, eval_novel and save_renders must be >= 0")
+        if self.gt_kf_max_gap < 1:
+            raise ValueError(f"gt_kf_max_gap must be >= 1 frame, got {self.gt_kf_max_gap}")
+        for name in ("gt_kf_trans_m", "gt_kf_rot_deg", "gt_inv_depth_var"):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and v >= 0):
+                raise ValueError(f"{name} must be a finite number >= 0, got {v}")
+        if self.checkpoint_every < 0:
+            raise ValueError(f"checkpoint_every must be >= 0 (0 = only at the end), got {self.checkpoint_every}")
 
 
 def auto_working_size(native_w: int, native_h: int, width: int = 0, height: int = 0) -> tuple[int, int]:
@@ -473,6 +482,7 @@ class SlamRunner:
         self._kf_stamps: list[int] = []
         self._mapper_err: Optional[BaseException] = None
         self._abort = False     # set when the run fails: the mapper thread drops what is queued
+        self._mapper_done = threading.Event()
         self._pending_corrections: list[dict[int, np.ndarray]] = []
         self._lock = threading.Lock()
         self._queue: "queue.Queue[Optional[tuple[str, object]]]" = queue.Queue()
@@ -489,8 +499,9 @@ class SlamRunner:
             with self._lock:
                 self._pending_corrections.append(corrections)
         n = len(self.mapper.keyframe_poses())
-        if self.cfg.checkpoint_every and n % self.cfg.checkpoint_every == 0:
-            self.mapper.save_checkpoint(self.out.out_dir / CHECKPOINT_FILE)
+        if self.cfg.checkpoint_every and n % self.cfg.checkpoint_every == 0 and not self._abort:
+            # the previous run's checkpoint.pt stays until this run completes
+            self.mapper.save_checkpoint(self.out.partial_checkpoint_path)
 
     def _handle(self, kind: str, item: object) -> None:
         if kind == "kf":
@@ -506,9 +517,38 @@ class SlamRunner:
                     return
                 if not self._abort:     # a failed or interrupted run writes nothing: skip the rest
                     self._handle(*msg)
-        except BaseException as e:  # surfaced in the main thread
+        except VingsError as e:     # a user-facing error (disk full, bad input): one line, in the main thread
+            self._mapper_err = e
+            log.debug("mapper thread stopped", exc_info=True)
+        except BaseException as e:  # a bug: traceback here, surfaced in the main thread
             self._mapper_err = e
             log.exception("mapper thread failed")
+        finally:
+            self._mapper_done.set()
+
+    def _raise_mapper_error(self) -> None:
+        e = self._mapper_err
+        if e is None:
+            return
+        if isinstance(e, VingsError):
+            raise e
+        raise VingsError(f"mapper failed: {type(e).__name__}: {e}") from e
+
+    def _stop_worker(self, worker: Optional[threading.Thread]) -> None:
+        """Let the mapper thread finish what is queued (or, after ``_abort``, drop it) and wait for
+        it. A Ctrl-C while waiting aborts the queue and keeps waiting: the thread must be out of
+        torch before the interpreter exits (a thread killed inside it aborts the process)."""
+        if worker is None:
+            return
+        self._queue.put(None)
+        while not self._mapper_done.is_set():
+            try:
+                self._mapper_done.wait(0.2)
+            except KeyboardInterrupt:
+                if not self._abort:
+                    self._abort = True
+                    log.warning("interrupted: stopping the mapper (it ends its current step)")
+                    raise
 
     def _submit(self, kf: Keyframe, worker: Optional[threading.Thread]) -> None:
         self._kf_stamps.append(kf.stamp_ns)
@@ -559,8 +599,7 @@ class SlamRunner:
         try:
             for frame in self.source.frames():
                 n_frames += 1
-                if self._mapper_err is not None:
-                    raise VingsError(f"mapper failed: {self._mapper_err}")
+                self._raise_mapper_error()
                 self._take_corrections()
                 if self.gt_kf is not None:
                     T, kf = self.gt_kf.process(frame)
@@ -588,20 +627,42 @@ class SlamRunner:
                 self._send_moves(worker)
                 for kf in kfs:
                     self._submit(kf, worker)
+            bar.close()
+            if worker is not None and self._queue.qsize():
+                log.info("tracking done; the mapper is finishing %d queued keyframe(s)", self._queue.qsize())
+            self._stop_worker(worker)
         except BaseException:
             self._abort = True      # Ctrl-C or an input error: do not map the queued keyframes first
-            raise
-        finally:
-            if worker is not None:
-                self._queue.put(None)
-                worker.join()
             bar.close()
-        if self._mapper_err is not None:
-            raise VingsError(f"mapper failed: {self._mapper_err}")
+            self._stop_worker_after_failure(worker)
+            self._save_partial()
+            raise
+        self._raise_mapper_error()
         self._take_corrections()
         self._send_moves(None)
-        wall = time.perf_counter() - t0
-        return self._finish(n_frames, wall)
+        return self._finish(n_frames, t0)
+
+    def _stop_worker_after_failure(self, worker: Optional[threading.Thread]) -> None:
+        while True:
+            try:
+                self._stop_worker(worker)
+                return
+            except KeyboardInterrupt:
+                continue    # already aborting: keep waiting for the thread to leave torch
+
+    def _save_partial(self) -> None:
+        """After an interruption or failure: the trajectory so far, beside the previous run's
+        complete outputs (which stay untouched); best effort, never masks the original error."""
+        try:
+            traj = self.trajectory()
+            if len(traj) == 0:
+                return
+            a, b = self.out.write_partial(traj, self.keyframe_trajectory())
+            ck = self.out.partial_checkpoint_path
+            log.warning("stopped early: the trajectory so far is in %s and %s%s", a, b,
+                        f" (map checkpoint as of an earlier keyframe: {ck})" if ck.exists() else "")
+        except Exception as e:  # noqa: BLE001 - best effort while another error propagates
+            log.warning("could not write the partial trajectory: %s", e)
 
     # ------------------------------------------------------------------------------ outputs
 
@@ -614,7 +675,7 @@ class SlamRunner:
     def keyframe_trajectory(self) -> Trajectory:
         return Trajectory.from_poses(self.mapper.keyframe_poses())
 
-    def _finish(self, n_frames: int, wall: float) -> dict:
+    def _finish(self, n_frames: int, t0: float) -> dict:
         traj = self.trajectory()
         kf_traj = self.keyframe_trajectory()
         if len(kf_traj) == 0:
@@ -624,19 +685,23 @@ class SlamRunner:
             log.warning("the map is empty: none of the %d keyframes had usable depth (%d frames: "
                         "too few, or too little camera motion, for confident depth)", len(kf_traj),
                         n_frames)
+        self.out.begin_final()
         self.out.write_trajectory(traj)
         self.out.write_keyframes(kf_traj)
         self.mapper.save_ply(self.out.map_path)
-        self.mapper.save_checkpoint(self.out.out_dir / CHECKPOINT_FILE)
+        self.mapper.save_checkpoint(self.out.checkpoint_path)
         m = metrics_template()
         if self.frontend is not None:
             st = self.fe_link.stats
             log.info("pose write-back (%s): %d mapper corrections, %d applied, %d rejected",
                      self.cfg.pose_writeback, st["corrections"], st["applied"], st["rejected"])
-        m.update(frames=n_frames, frames_tracked=len(traj), keyframes=len(kf_traj), wall_s=wall,
-                 fps=n_frames / wall if wall > 0 else None, num_gaussians=int(self.mapper.num_gaussians))
-        gt = self.source.gt_camera_trajectory()
-        if gt is not None and len(traj) >= 3:
+        m.update(frames=n_frames, frames_tracked=len(traj), keyframes=len(kf_traj),
+                 num_gaussians=int(self.mapper.num_gaussians))
+        # with gt_poses the trajectory IS the ground truth: no ATE/RPE to report (null)
+        gt = None if self.cfg.gt_poses else self.source.gt_camera_trajectory()
+        if gt is not None and len(traj) < 3:
+            log.warning("trajectory evaluation skipped: %d tracked frame(s), at least 3 are needed", len(traj))
+        elif gt is not None:
             try:
                 ev = evaluate_trajectory(traj, gt)
                 m.update({k: ev.get(k) for k in ("ate_sim3_m", "ate_se3_m", "sim3_scale", "rpe")})
@@ -644,7 +709,11 @@ class SlamRunner:
                 log.warning("trajectory evaluation skipped: %s", e)
         m.update(self._image_metrics(kf_traj, traj))
         m["peak_rss_mb"] = peak_rss_mb()
-        return self.out.write_metrics(m)
+        wall = time.perf_counter() - t0     # reading to the last output before metrics.json
+        m.update(wall_s=wall, fps=n_frames / wall if wall > 0 else None)
+        out = self.out.write_metrics(m)
+        self.out.end_final()
+        return out
 
     def _image_metrics(self, kf_traj: Trajectory, traj: Trajectory) -> dict:
         kf_poses = dict(zip(kf_traj.stamps_ns.tolist(), kf_traj.poses))

@@ -34,6 +34,12 @@ KEYFRAMES_FILE = "keyframes.tum"
 MAP_FILE = "map.ply"
 METRICS_FILE = "metrics.json"
 RENDERS_DIR = "renders"
+CHECKPOINT_FILE = "checkpoint.pt"
+# a run in progress writes these; the previous complete run's files stay untouched until the end
+CHECKPOINT_PARTIAL_FILE = "checkpoint.partial.pt"
+TRAJECTORY_PARTIAL_FILE = "trajectory.partial.tum"
+KEYFRAMES_PARTIAL_FILE = "keyframes.partial.tum"
+RUN_RENDER_PREFIX = "kf_"       # the runner's renders: renders/kf_<stamp>.png
 
 #: metrics.json keys, in file order. Units: wall_s s, fps frames/s, ate_* m, psnr_* dB,
 #: peak_rss_mb MiB; rpe is the dict of vings_core.eval.traj.rpe (or null).
@@ -139,12 +145,12 @@ class RunOutput:
             raise InputError(f"{self.out_dir}: output path exists and is not a folder")
 
     def prepare(self) -> None:
-        """Before a run's work: create the folder and check that it is writable (so a bad
-        ``--out`` fails at once, not after hours of SLAM), and remove what would make a previous
-        run's outputs look like this run's: ``metrics.json`` (written last: its presence marks a
-        complete run) and the PNGs in ``renders/``. The other files are replaced when written."""
+        """Before a run's work: create the folder and ``renders/`` and check that they are
+        writable, so a bad ``--out`` fails at once, not after hours of SLAM. Nothing is removed:
+        a previous run's outputs stay complete and readable until this run reaches its end
+        (:meth:`begin_final`); until then this run writes only ``*.partial.*`` files."""
         try:
-            self.out_dir.mkdir(parents=True, exist_ok=True)
+            self.renders_dir.mkdir(parents=True, exist_ok=True)
             fd, probe = tempfile.mkstemp(prefix=".write-test.", dir=self.out_dir)
             os.close(fd)
             os.unlink(probe)
@@ -152,16 +158,50 @@ class RunOutput:
             raise InputError(f"{self.out_dir}: cannot write to the output folder "
                              f"({e.strerror or e})") from None
         if any(p.exists() for p in (self.metrics_path, self.trajectory_path, self.map_path)):
-            log.warning("%s holds the outputs of a previous run; they are replaced", self.out_dir)
+            log.warning("%s holds the outputs of a previous run; they are kept until this run "
+                        "completes, then replaced", self.out_dir)
+
+    def begin_final(self) -> None:
+        """At the end of a run, before its final files: remove what would make the previous run's
+        outputs look like this run's: ``metrics.json`` (written last: its presence marks a
+        complete run) and the runner's renders ``renders/kf_*.png`` (other files there are not
+        ours and stay). The other files are replaced when written."""
         try:
             if self.metrics_path.exists():
                 self.metrics_path.unlink()
             if self.renders_dir.is_dir():
-                for p in self.renders_dir.glob("*.png"):
+                for p in self.renders_dir.glob(f"{RUN_RENDER_PREFIX}*.png"):
                     p.unlink()
+            self.renders_dir.mkdir(exist_ok=True)
         except OSError as e:
             raise InputError(f"{self.out_dir}: cannot replace a previous run's outputs "
                              f"({e.strerror or e})") from None
+
+    def end_final(self) -> None:
+        """After a run's final files: the partial files of this (or an interrupted) run go."""
+        for p in (self.partial_checkpoint_path, self.out_dir / TRAJECTORY_PARTIAL_FILE,
+                  self.out_dir / KEYFRAMES_PARTIAL_FILE):
+            try:
+                p.unlink(missing_ok=True)
+            except OSError as e:
+                log.warning("could not remove %s (%s)", p, e.strerror or e)
+
+    def write_partial(self, traj: Trajectory, keyframes: Trajectory) -> tuple[Path, Path]:
+        """The trajectories of a run that stopped early (interrupted or failed), beside the
+        previous run's files: ``trajectory.partial.tum``, ``keyframes.partial.tum``."""
+        a, b = self.out_dir / TRAJECTORY_PARTIAL_FILE, self.out_dir / KEYFRAMES_PARTIAL_FILE
+        write_tum(a, traj)
+        write_tum(b, keyframes)
+        return a, b
+
+    @property
+    def checkpoint_path(self) -> Path:
+        return self.out_dir / CHECKPOINT_FILE
+
+    @property
+    def partial_checkpoint_path(self) -> Path:
+        """Where a run in progress writes its periodic map checkpoints."""
+        return self.out_dir / CHECKPOINT_PARTIAL_FILE
 
     @property
     def trajectory_path(self) -> Path:
