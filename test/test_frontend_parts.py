@@ -93,6 +93,43 @@ def test_joint_bilateral_upsample_matches_reference_and_respects_edges():
     assert bv[10, 3 * s] > 10 * bv[10, 4]
 
 
+@pytest.mark.parametrize("frac", [0.3, 0.7])
+def test_unobserved_cells_do_not_leak_whatever_their_fraction(frac):
+    """Cells no residual observes have infinite variance (window_inv_depth_var): they take no part
+    in the upsampling and a pixel next to one is unknown, the same with 30 % or 70 % of the frame
+    unobserved (a finite placeholder variance used to become the median above 50 % and leak into
+    observed pixels)."""
+    h, w, s = 6, 10, 8
+    inv = np.full((h, w), 0.5, np.float32)
+    var = np.full((h, w), 1e-4, np.float32)
+    n_un = int(round(frac * w))
+    var[:, w - n_un:] = np.inf
+    guide = np.full((h * s, w * s), 100, np.float32)
+    fi, fv = joint_bilateral_upsample(inv, var, guide, s, 0.8, 12.0, True)
+    ri, rv = upsample_reference(inv, var, guide, s, 0.8, 12.0, True)
+    assert np.array_equal(np.isfinite(fv), np.isfinite(rv))
+    fin = np.isfinite(rv)
+    assert np.allclose(fi[fin], ri[fin], rtol=1e-5) and np.allclose(fv[fin], rv[fin], rtol=1e-4)
+    first_un = (w - n_un) * s                       # first pixel column of an unobserved cell
+    assert not np.isfinite(fv[:, first_un - s // 2:]).any()      # the support touches it
+    obs = fv[:, : first_un - s]                     # observed pixels away from the boundary
+    assert np.isfinite(obs).all() and np.allclose(obs, 1e-4, rtol=1e-3)
+
+
+def test_window_variance_of_unobserved_depths_is_infinite():
+    from vings_core.frontend.ba import NormalEquations
+    from vings_core.frontend.uncertainty import window_inv_depth_var
+    M, P = 2, 5
+    C = torch.full((M, P), 4.0, dtype=torch.float64)
+    C[1, 2] = 0.0                                   # no residual touches this depth
+    f64 = torch.float64
+    ne = NormalEquations(B=torch.eye(6, dtype=f64).repeat(M, M, 1, 1) * 10, v=torch.zeros(M, 6, dtype=f64),
+                         E=torch.zeros(M, M, P, 6, dtype=f64), C=C, z=torch.zeros(M, P, dtype=f64),
+                         cost=0.0, W=torch.zeros(0, P, dtype=f64))
+    var = window_inv_depth_var(ne, torch.arange(1, M))
+    assert torch.isinf(var[1, 2]) and torch.allclose(var[0], torch.full((P,), 0.25, dtype=torch.float64))
+
+
 def test_validity_mask_drops_uncertain_excessive_and_flat_far():
     H, W = 40, 48
     guide = _texture(H, W)

@@ -90,7 +90,10 @@ def joint_bilateral_upsample(inv_lr: np.ndarray, var_lr: np.ndarray, guide: np.n
     (``sigma_r``) x confidence ``1 / (1 + var / median(var))``. The variance is the same weighted
     mean of the cells' (BA marginal) variances plus, with ``spread_var``, the uncertainty of the
     interpolation itself: the bilinearly upsampled :func:`interpolation_variance_lr`, large across
-    depth edges.
+    depth edges. Cells without a usable estimate (infinite variance: nothing observed them, or no
+    positive inverse depth) take no part, and a pixel with such a cell among the (up to) four of its
+    bilinear support has no direct observation: its variance is ``inf`` whatever the fraction of
+    unobserved cells in the frame.
     """
     g = guide.astype(np.float32)
     h, w = inv_lr.shape
@@ -108,9 +111,15 @@ def joint_bilateral_upsample(inv_lr: np.ndarray, var_lr: np.ndarray, guide: np.n
     var = (wt * vv).sum(0) / sws
     if spread_var:
         var = var + upsample_bilinear(interpolation_variance_lr(inv_lr), *g.shape, stride)
+    ok &= _observed_support(finite, *g.shape, stride)
     inv = np.where(ok, inv, 0.0)
     var = np.where(ok, var, np.inf)
     return inv.astype(np.float32), var.astype(np.float32)
+
+
+def _observed_support(finite_lr: np.ndarray, H: int, W: int, stride: int) -> np.ndarray:
+    """``(H, W)``: every grid cell of the pixel's bilinear support has an estimate."""
+    return upsample_bilinear((~finite_lr).astype(np.float32), H, W, stride) <= 0.0
 
 
 def upsample_reference(inv_lr, var_lr, guide, stride, sigma_s=0.8, sigma_r=12.0, spread_var=True):
@@ -148,6 +157,18 @@ def upsample_reference(inv_lr, var_lr, guide, stride, sigma_s=0.8, sigma_r=12.0,
             var_out[y, x] = vnum / den
     if spread_var:
         var_out += upsample_bilinear(interpolation_variance_lr(inv_lr), H, W, stride)
+    for y in range(H):
+        for x in range(W):
+            # the cells of the pixel's bilinear support (rows/columns beyond the last whole block
+            # repeat the border): one without an estimate leaves the pixel unknown
+            cy = (min(y, h * stride - 1) - off) / stride
+            cx = (min(x, w * stride - 1) - off) / stride
+            y0, x0 = int(np.floor(cy)), int(np.floor(cx))
+            rows = {min(max(y0, 0), h - 1)} | ({min(max(y0 + 1, 0), h - 1)} if cy > y0 else set())
+            cols = {min(max(x0, 0), w - 1)} | ({min(max(x0 + 1, 0), w - 1)} if cx > x0 else set())
+            if not all(finite[r, c] for r in rows for c in cols):
+                inv_out[y, x] = 0.0
+                var_out[y, x] = np.inf
     return inv_out.astype(np.float32), var_out.astype(np.float32)
 
 

@@ -33,10 +33,13 @@ def marginal_inv_depth_var(rs: ReducedSystem, jitter: float = 1e-9) -> torch.Ten
 
 
 def window_inv_depth_var(ne: NormalEquations, free: torch.Tensor, eps_c: float = 1e-9) -> torch.Tensor:
-    """``(M, P)`` marginal inverse-depth variances of a BA window whose free poses are ``free``."""
+    """``(M, P)`` marginal inverse-depth variances of a BA window whose free poses are ``free``;
+    ``inf`` for depths no residual observes (``C = 0``: the solve's regulariser ``eps_c`` would
+    otherwise pass for a real, if large, variance, e.g. in the upsampler's median)."""
     M, P = ne.C.shape
     rs = schur_reduce(ne, free, lam=0.0, eps_c=eps_c)
-    return marginal_inv_depth_var(rs).reshape(M, P)
+    var = marginal_inv_depth_var(rs).reshape(M, P)
+    return torch.where(ne.C > 0, var, torch.full_like(var, float("inf")))
 
 
 def marginal_inv_depth_var_dense(ne: NormalEquations, free: torch.Tensor,
