@@ -311,3 +311,21 @@ def test_run_config_refuses_nonsense(field, value):
     from vings_core.pipeline import RunConfig
     with pytest.raises(ValueError, match=field):
         RunConfig(**{field: value}).validate()
+
+
+def test_keyframe_images_for_evaluation_stay_bounded_and_spread():
+    """A long run holds at most 2 x eval_keyframes keyframe images, evenly spread over the run."""
+    from types import SimpleNamespace
+    from vings_core.pipeline import RunConfig, SlamRunner
+    r = SlamRunner.__new__(SlamRunner)
+    r.cfg, r._kf_images, r._kf_stride = RunConfig(eval_keyframes=5), {}, 1
+    img = torch.zeros(2, 2, 3)
+    for i in range(1000):
+        r._keep_kf_image(i, SimpleNamespace(stamp_ns=10 * i, image=img))
+        assert len(r._kf_images) <= 10
+    idx = sorted(v[0] for v in r._kf_images.values())
+    assert idx[0] == 0 and 1000 - idx[-1] <= r._kf_stride and len(idx) >= 5
+    assert len(set(np.diff(idx))) == 1            # one stride: evenly spread
+    r.cfg, r._kf_images = RunConfig(eval_keyframes=0), {}
+    r._keep_kf_image(0, SimpleNamespace(stamp_ns=0, image=img))
+    assert not r._kf_images

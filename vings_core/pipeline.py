@@ -475,8 +475,11 @@ class SlamRunner:
         self.frontend = None if self.cfg.gt_poses else Frontend(
             load_section(FrontendConfig, "frontend", params_file), cam)
         self.gt_kf = _GtKeyframer(source, self.cfg) if self.cfg.gt_poses else None
-        # evaluation material kept while running
-        self._kf_images: dict[int, np.ndarray] = {}
+        # evaluation material kept while running; keyframe images: every stride-th keyframe, the
+        # stride doubling whenever more than 2 x eval_keyframes are held (bounded memory on long
+        # recordings, still evenly spread over the run)
+        self._kf_images: dict[int, tuple[int, np.ndarray]] = {}
+        self._kf_stride = 1
         self._frame_images: dict[int, np.ndarray] = {}
         self._gt_poses: dict[int, np.ndarray] = {}
         self._kf_stamps: list[int] = []
@@ -552,9 +555,18 @@ class SlamRunner:
 
     def _submit(self, kf: Keyframe, worker: Optional[threading.Thread]) -> None:
         self._kf_stamps.append(kf.stamp_ns)
-        self._kf_images[kf.stamp_ns] = (kf.image.numpy() * 255).round().astype(np.uint8)
+        self._keep_kf_image(len(self._kf_stamps) - 1, kf)
         self.fe_link.keyframe_sent(kf)
         self._dispatch("kf", kf, worker)
+
+    def _keep_kf_image(self, index: int, kf: Keyframe) -> None:
+        cap = 2 * self.cfg.eval_keyframes
+        if cap == 0 or index % self._kf_stride:
+            return
+        self._kf_images[kf.stamp_ns] = (index, (kf.image.numpy() * 255).round().astype(np.uint8))
+        if len(self._kf_images) > cap:
+            self._kf_stride *= 2
+            self._kf_images = {s: v for s, v in self._kf_images.items() if v[0] % self._kf_stride == 0}
 
     def _dispatch(self, kind: str, item: object, worker: Optional[threading.Thread]) -> None:
         if worker is None:
@@ -718,11 +730,12 @@ class SlamRunner:
     def _image_metrics(self, kf_traj: Trajectory, traj: Trajectory) -> dict:
         kf_poses = dict(zip(kf_traj.stamps_ns.tolist(), kf_traj.poses))
         psnrs, ssims = [], []
-        eval_kfs = _even_subset([s for s in self._kf_stamps if s in kf_poses], self.cfg.eval_keyframes)
+        eval_kfs = _even_subset([s for s in self._kf_stamps if s in kf_poses and s in self._kf_images],
+                                self.cfg.eval_keyframes)
         save = set(_even_subset(eval_kfs, self.cfg.save_renders))
         for s in eval_kfs:
             out = self.mapper.render(kf_poses[s], self.camera)
-            ref = self._kf_images[s].astype(np.float32) / 255.0
+            ref = self._kf_images[s][1].astype(np.float32) / 255.0
             psnrs.append(psnr(out["color"], ref))
             ssims.append(ssim(out["color"], ref))
             if s in save:
