@@ -44,6 +44,18 @@ def test_invalid_values_are_named(tmp_path):
         load_section(NodeConfig, "ros", p)
 
 
+def test_a_parameter_given_twice_is_an_error(tmp_path):
+    from vings_core.pipeline import RunConfig
+    p = tmp_path / "p.yaml"
+    p.write_text("/**:\n  ros__parameters:\n    run.eval_keyframes: 3\n    run:\n      eval_keyframes: 4\n")
+    with pytest.raises(ConfigError, match="'eval_keyframes' is given twice"):
+        load_section(RunConfig, "run", p)
+    # different keys of one section, dotted and nested, merge
+    p.write_text("/**:\n  ros__parameters:\n    run.eval_keyframes: 3\n    run:\n      eval_novel: 4\n")
+    c = load_section(RunConfig, "run", p)
+    assert (c.eval_keyframes, c.eval_novel) == (3, 4)
+
+
 def test_replaced_parameter_names_its_successor(tmp_path):
     from vings_core.mapping import MapperConfig
     p = tmp_path / "p.yaml"

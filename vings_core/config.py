@@ -82,12 +82,24 @@ def _expand_dotted(d: dict, where: str) -> dict:
         for name in reversed(parts[1:]):
             v = {name: v}
         if parts[0] in out and isinstance(out[parts[0]], dict) and isinstance(v, dict):
-            _deep_merge(out[parts[0]], v)
+            _merge_new(out[parts[0]], v, f"{where}: parameter {k!r}")
         elif parts[0] in out:
             raise ConfigError(f"{where}: parameter {k!r} is given twice")
         else:
             out[parts[0]] = v
     return out
+
+
+def _merge_new(dst: dict, src: dict, what: str) -> None:
+    """Merge ``src`` into ``dst`` where a value given twice (``run.x: 1`` beside ``run: {x: 2}``)
+    is an error, not a silent override."""
+    for k, v in src.items():
+        if isinstance(v, dict) and isinstance(dst.get(k), dict):
+            _merge_new(dst[k], v, what)
+        elif k in dst:
+            raise ConfigError(f"{what}: {k!r} is given twice")
+        else:
+            dst[k] = v
 
 
 def _deep_merge(dst: dict, src: dict) -> None:
