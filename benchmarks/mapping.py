@@ -75,9 +75,19 @@ def peak_rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
+_EARLIER_PEAK_MB = 0.0      # the process's peak before the last reset
+
+
+def process_peak_rss_mb() -> float:
+    """Peak RSS (MB) of the whole process, across :func:`reset_peak_rss` calls."""
+    return max(_EARLIER_PEAK_MB, peak_rss_mb())
+
+
 def reset_peak_rss() -> bool:
     """Restart the peak-RSS count (Linux ``clear_refs`` 5), so one experiment's peak is not an
     earlier experiment's; False where the system does not allow it (the peak is then the process's)."""
+    global _EARLIER_PEAK_MB
+    _EARLIER_PEAK_MB = process_peak_rss_mb()
     try:
         with open("/proc/self/clear_refs", "w") as f:
             f.write("5")
@@ -639,7 +649,7 @@ def main(argv=None) -> int:
                 log(f"{e}: FAILED: {type(err).__name__}: {err}")
     finally:
         out["failed"] = failed
-        out["peak_rss_mb"] = peak_rss_mb()
+        out["peak_rss_mb"] = process_peak_rss_mb()
         print(json.dumps(_json_safe(out)), flush=True)
     return 1 if failed else 0
 

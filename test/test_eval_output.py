@@ -273,13 +273,24 @@ def test_ctrl_c_while_the_mapper_drains_its_queue_stops_it(tmp_path):
     r = SlamRunner(_room_source(tmp_path, frames=40), tmp_path / "o", _fast_params(tmp_path, iters=300),
                    RunConfig(sync=False, checkpoint_every=0), progress=False)
     stop = r._stop_worker
+    timers = []
 
     def interrupted_wait(worker):
-        threading.Timer(0.5, signal.pthread_kill, (threading.main_thread().ident, signal.SIGINT)).start()
+        r._stop_worker = stop       # one Ctrl-C only (the failure path waits again)
+        t = threading.Timer(0.5, signal.pthread_kill, (threading.main_thread().ident, signal.SIGINT))
+        t.daemon = True
+        timers.append(t)
+        t.start()
         stop(worker)
     r._stop_worker = interrupted_wait
-    with pytest.raises(KeyboardInterrupt):
-        r.run()
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            r.run()
+    finally:
+        for t in timers:
+            t.cancel()
+            t.join()
+    assert len(timers) == 1
     assert r._mapper_done.is_set() and r._abort
     assert len(r.mapper.keyframe_poses()) < len(r._kf_stamps)
     assert (tmp_path / "o" / "trajectory.partial.tum").exists()
@@ -329,3 +340,13 @@ def test_keyframe_images_for_evaluation_stay_bounded_and_spread():
     r.cfg, r._kf_images = RunConfig(eval_keyframes=0), {}
     r._keep_kf_image(0, SimpleNamespace(stamp_ns=0, image=img))
     assert not r._kf_images
+
+
+def test_prepare_removes_an_interrupted_earlier_runs_partial_files(tmp_path):
+    out = RunOutput(tmp_path / "o")
+    out.out_dir.mkdir()
+    for name in ("checkpoint.partial.pt", "trajectory.partial.tum", "keyframes.partial.tum"):
+        (out.out_dir / name).write_text("old")
+    out.write_metrics(metrics_template())
+    out.prepare()
+    assert sorted(p.name for p in out.out_dir.iterdir()) == ["metrics.json", "renders"]

@@ -32,7 +32,7 @@ import torch
 from .config import load_section
 from .errors import InputError, VingsError
 from .eval.image import psnr, ssim
-from .eval.output import RunOutput, metrics_template, peak_rss_mb
+from .eval.output import RUN_RENDER_PREFIX, RunOutput, metrics_template, peak_rss_mb
 from .eval.traj import evaluate_trajectory
 from .geometry import np_pose_compose, np_pose_inverse, np_se3_log, rotation_angle_deg
 from .io.base import Source, SourceOptions
@@ -486,6 +486,7 @@ class SlamRunner:
         self._mapper_err: Optional[BaseException] = None
         self._abort = False     # set when the run fails: the mapper thread drops what is queued
         self._mapper_done = threading.Event()
+        self._partial_ckpt = False  # this run wrote checkpoint.partial.pt
         self._pending_corrections: list[dict[int, np.ndarray]] = []
         self._lock = threading.Lock()
         self._queue: "queue.Queue[Optional[tuple[str, object]]]" = queue.Queue()
@@ -505,6 +506,7 @@ class SlamRunner:
         if self.cfg.checkpoint_every and n % self.cfg.checkpoint_every == 0 and not self._abort:
             # the previous run's checkpoint.pt stays until this run completes
             self.mapper.save_checkpoint(self.out.partial_checkpoint_path)
+            self._partial_ckpt = True
 
     def _handle(self, kind: str, item: object) -> None:
         if kind == "kf":
@@ -643,16 +645,20 @@ class SlamRunner:
             if worker is not None and self._queue.qsize():
                 log.info("tracking done; the mapper is finishing %d queued keyframe(s)", self._queue.qsize())
             self._stop_worker(worker)
-        except BaseException:
+            self._raise_mapper_error()
+            self._take_corrections()
+            self._send_moves(None)
+            # everything slow (evaluation renders) happens before any output file is replaced
+            final = self._evaluate(n_frames)
+        except BaseException as e:
             self._abort = True      # Ctrl-C or an input error: do not map the queued keyframes first
             bar.close()
             self._stop_worker_after_failure(worker)
+            if self._mapper_err is not None and self._mapper_err is not e:
+                log.warning("the mapper had stopped too: %s", self._mapper_err)
             self._save_partial()
             raise
-        self._raise_mapper_error()
-        self._take_corrections()
-        self._send_moves(None)
-        return self._finish(n_frames, t0)
+        return self._write_final(final, t0)
 
     def _stop_worker_after_failure(self, worker: Optional[threading.Thread]) -> None:
         while True:
@@ -664,7 +670,8 @@ class SlamRunner:
 
     def _save_partial(self) -> None:
         """After an interruption or failure: the trajectory so far, beside the previous run's
-        complete outputs (which stay untouched); best effort, never masks the original error."""
+        complete outputs (which stay untouched); best effort, never masks the original error
+        (not even a second Ctrl-C while writing)."""
         try:
             traj = self.trajectory()
             if len(traj) == 0:
@@ -672,8 +679,8 @@ class SlamRunner:
             a, b = self.out.write_partial(traj, self.keyframe_trajectory())
             ck = self.out.partial_checkpoint_path
             log.warning("stopped early: the trajectory so far is in %s and %s%s", a, b,
-                        f" (map checkpoint as of an earlier keyframe: {ck})" if ck.exists() else "")
-        except Exception as e:  # noqa: BLE001 - best effort while another error propagates
+                        f" (map checkpoint as of an earlier keyframe: {ck})" if self._partial_ckpt else "")
+        except BaseException as e:  # noqa: BLE001 - best effort while another error propagates
             log.warning("could not write the partial trajectory: %s", e)
 
     # ------------------------------------------------------------------------------ outputs
@@ -687,7 +694,9 @@ class SlamRunner:
     def keyframe_trajectory(self) -> Trajectory:
         return Trajectory.from_poses(self.mapper.keyframe_poses())
 
-    def _finish(self, n_frames: int, t0: float) -> dict:
+    def _evaluate(self, n_frames: int) -> dict:
+        """Everything the final outputs need, computed in memory (renders included), before any
+        file of a previous run is replaced."""
         traj = self.trajectory()
         kf_traj = self.keyframe_trajectory()
         if len(kf_traj) == 0:
@@ -697,11 +706,6 @@ class SlamRunner:
             log.warning("the map is empty: none of the %d keyframes had usable depth (%d frames: "
                         "too few, or too little camera motion, for confident depth)", len(kf_traj),
                         n_frames)
-        self.out.begin_final()
-        self.out.write_trajectory(traj)
-        self.out.write_keyframes(kf_traj)
-        self.mapper.save_ply(self.out.map_path)
-        self.mapper.save_checkpoint(self.out.checkpoint_path)
         m = metrics_template()
         if self.frontend is not None:
             st = self.fe_link.stats
@@ -719,17 +723,31 @@ class SlamRunner:
                 m.update({k: ev.get(k) for k in ("ate_sim3_m", "ate_se3_m", "sim3_scale", "rpe")})
             except InputError as e:
                 log.warning("trajectory evaluation skipped: %s", e)
-        m.update(self._image_metrics(kf_traj, traj))
+        images, renders = self._image_metrics(kf_traj, traj)
+        m.update(images)
+        return {"traj": traj, "kf_traj": kf_traj, "metrics": m, "renders": renders}
+
+    def _write_final(self, final: dict, t0: float) -> dict:
+        """Replace the previous run's files by this run's (a few seconds), ``metrics.json`` last."""
+        self.out.begin_final()
+        self.out.write_trajectory(final["traj"])
+        self.out.write_keyframes(final["kf_traj"])
+        self.mapper.save_ply(self.out.map_path)
+        self.mapper.save_checkpoint(self.out.checkpoint_path)
+        for name, rgb in final["renders"].items():
+            self.out.save_render(name, rgb)
+        m = final["metrics"]
         m["peak_rss_mb"] = peak_rss_mb()
         wall = time.perf_counter() - t0     # reading to the last output before metrics.json
-        m.update(wall_s=wall, fps=n_frames / wall if wall > 0 else None)
+        m.update(wall_s=wall, fps=m["frames"] / wall if wall > 0 else None)
         out = self.out.write_metrics(m)
-        self.out.end_final()
+        self.out.remove_partials()
         return out
 
-    def _image_metrics(self, kf_traj: Trajectory, traj: Trajectory) -> dict:
+    def _image_metrics(self, kf_traj: Trajectory, traj: Trajectory) -> tuple[dict, dict]:
+        """PSNR/SSIM figures and the keyframe renders to save (``{file name: RGB}``)."""
         kf_poses = dict(zip(kf_traj.stamps_ns.tolist(), kf_traj.poses))
-        psnrs, ssims = [], []
+        psnrs, ssims, renders = [], [], {}
         eval_kfs = _even_subset([s for s in self._kf_stamps if s in kf_poses and s in self._kf_images],
                                 self.cfg.eval_keyframes)
         save = set(_even_subset(eval_kfs, self.cfg.save_renders))
@@ -739,7 +757,7 @@ class SlamRunner:
             psnrs.append(psnr(out["color"], ref))
             ssims.append(ssim(out["color"], ref))
             if s in save:
-                self.out.save_render(f"kf_{s}.png", out["color"])
+                renders[f"{RUN_RENDER_PREFIX}{s}.png"] = out["color"]
         frame_poses = dict(zip(traj.stamps_ns.tolist(), traj.poses))
         kf_set = set(self._kf_stamps)
         novel = _even_subset([s for s in sorted(self._frame_images) if s in frame_poses and s not in kf_set],
@@ -749,9 +767,9 @@ class SlamRunner:
             out = self.mapper.render(frame_poses[s], self.camera)
             npsnr.append(psnr(out["color"], self._frame_images[s].astype(np.float32) / 255.0))
         fin = lambda v: [x for x in v if np.isfinite(x)]  # noqa: E731
-        return {"psnr_keyframes_db": float(np.mean(fin(psnrs))) if fin(psnrs) else None,
-                "ssim_keyframes": float(np.mean(ssims)) if ssims else None,
-                "psnr_novel_db": float(np.mean(fin(npsnr))) if fin(npsnr) else None}
+        return ({"psnr_keyframes_db": float(np.mean(fin(psnrs))) if fin(psnrs) else None,
+                 "ssim_keyframes": float(np.mean(ssims)) if ssims else None,
+                 "psnr_novel_db": float(np.mean(fin(npsnr))) if fin(npsnr) else None}, renders)
 
 
 def _progress(total: int, enabled: bool):

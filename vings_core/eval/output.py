@@ -146,20 +146,32 @@ class RunOutput:
 
     def prepare(self) -> None:
         """Before a run's work: create the folder and ``renders/`` and check that they are
-        writable, so a bad ``--out`` fails at once, not after hours of SLAM. Nothing is removed:
-        a previous run's outputs stay complete and readable until this run reaches its end
-        (:meth:`begin_final`); until then this run writes only ``*.partial.*`` files."""
+        writable, so a bad ``--out`` fails at once, not after hours of SLAM. A previous run's
+        outputs stay complete and readable until this run reaches its end (:meth:`begin_final`);
+        until then this run writes only ``*.partial.*`` files (an interrupted earlier run's
+        partial files are removed here, so they cannot pass for this run's)."""
         try:
             self.renders_dir.mkdir(parents=True, exist_ok=True)
-            fd, probe = tempfile.mkstemp(prefix=".write-test.", dir=self.out_dir)
-            os.close(fd)
-            os.unlink(probe)
+            for d in (self.out_dir, self.renders_dir):
+                fd, probe = tempfile.mkstemp(prefix=".write-test.", dir=d)
+                os.close(fd)
+                os.unlink(probe)
         except OSError as e:
             raise InputError(f"{self.out_dir}: cannot write to the output folder "
                              f"({e.strerror or e})") from None
         if any(p.exists() for p in (self.metrics_path, self.trajectory_path, self.map_path)):
             log.warning("%s holds the outputs of a previous run; they are kept until this run "
                         "completes, then replaced", self.out_dir)
+        # an earlier run's partial files (it was interrupted) must not pass for this run's
+        stale = [p for p in self._partial_paths() if p.exists()]
+        if stale:
+            log.warning("%s: removing an interrupted earlier run's partial files %s", self.out_dir,
+                        ", ".join(p.name for p in stale))
+            self.remove_partials()
+
+    def _partial_paths(self) -> tuple[Path, ...]:
+        return (self.partial_checkpoint_path, self.out_dir / TRAJECTORY_PARTIAL_FILE,
+                self.out_dir / KEYFRAMES_PARTIAL_FILE)
 
     def begin_final(self) -> None:
         """At the end of a run, before its final files: remove what would make the previous run's
@@ -177,10 +189,9 @@ class RunOutput:
             raise InputError(f"{self.out_dir}: cannot replace a previous run's outputs "
                              f"({e.strerror or e})") from None
 
-    def end_final(self) -> None:
+    def remove_partials(self) -> None:
         """After a run's final files: the partial files of this (or an interrupted) run go."""
-        for p in (self.partial_checkpoint_path, self.out_dir / TRAJECTORY_PARTIAL_FILE,
-                  self.out_dir / KEYFRAMES_PARTIAL_FILE):
+        for p in self._partial_paths():
             try:
                 p.unlink(missing_ok=True)
             except OSError as e:

@@ -24,14 +24,18 @@ def block_mean(img: np.ndarray, h: int, w: int, s: int) -> np.ndarray:
     return a.reshape(h, s, w, s).mean(axis=(1, 3))
 
 
-def interpolation_variance_lr(inv_lr: np.ndarray) -> np.ndarray:
+def interpolation_variance_lr(inv_lr: np.ndarray, known: np.ndarray | None = None) -> np.ndarray:
     """Per grid cell, the squared largest inverse-depth difference to its 4-neighbours: how far a
     value interpolated between this cell and its neighbours can be off when the surface is not
-    smooth between grid points (depth edges, thin structures). ``(h, w) -> (h, w)``."""
-    pad = np.pad(inv_lr.astype(np.float32), 1, mode="edge")
+    smooth between grid points (depth edges, thin structures). Neighbours outside ``known``
+    (cells without an estimate) are left out. ``(h, w) -> (h, w)``."""
+    inv = inv_lr.astype(np.float32)
+    if known is not None:
+        inv = np.where(known, inv, np.nan)
+    pad = np.pad(inv, 1, mode="edge")
     c = pad[1:-1, 1:-1]
-    dmax = np.max(np.abs(np.stack([pad[1:-1, :-2], pad[1:-1, 2:], pad[:-2, 1:-1], pad[2:, 1:-1]]) - c),
-                  axis=0)
+    diff = np.abs(np.stack([pad[1:-1, :-2], pad[1:-1, 2:], pad[:-2, 1:-1], pad[2:, 1:-1]]) - c)
+    dmax = np.max(np.where(np.isnan(diff), 0.0, diff), axis=0)
     return dmax * dmax
 
 
@@ -110,7 +114,7 @@ def joint_bilateral_upsample(inv_lr: np.ndarray, var_lr: np.ndarray, guide: np.n
     vv = np.where(finite, v, 0.0).astype(np.float32).ravel().take(idx)
     var = (wt * vv).sum(0) / sws
     if spread_var:
-        var = var + upsample_bilinear(interpolation_variance_lr(inv_lr), *g.shape, stride)
+        var = var + upsample_bilinear(interpolation_variance_lr(inv_lr, finite), *g.shape, stride)
     ok &= _observed_support(finite, *g.shape, stride)
     inv = np.where(ok, inv, 0.0)
     var = np.where(ok, var, np.inf)
@@ -156,7 +160,7 @@ def upsample_reference(inv_lr, var_lr, guide, stride, sigma_s=0.8, sigma_r=12.0,
             inv_out[y, x] = m
             var_out[y, x] = vnum / den
     if spread_var:
-        var_out += upsample_bilinear(interpolation_variance_lr(inv_lr), H, W, stride)
+        var_out += upsample_bilinear(interpolation_variance_lr(inv_lr, finite), H, W, stride)
     for y in range(H):
         for x in range(W):
             # the cells of the pixel's bilinear support (rows/columns beyond the last whole block
