@@ -84,6 +84,11 @@ def test_window_slots_give_sum_max_and_argmax_id():
     # outranks one seen twice with 2 px each, unlike the sum)
     assert torch.allclose(S.per_view_contribution(wc), torch.tensor([2.0, 0.0, 3.0, 2.0]))
     assert torch.allclose(S.per_view_contribution(torch.tensor([[5.0, 0.0], [2.0, 2.0]])), torch.tensor([5.0, 2.0]))
+    # a faint touch by other keyframes (below 0.1 x the best view) is not a view: it must not turn
+    # a Gaussian one keyframe sees well (3.0, kept at 1.6) into a prunable one (0.76 if counted)
+    faint = torch.tensor([[3.0, 0.01, 0.01, 0.01]])
+    assert torch.allclose(S.per_view_contribution(faint), torch.tensor([3.0]))
+    assert torch.allclose(S.per_view_contribution(faint, view_floor=0.0), torch.tensor([3.03 / 4]))
     # keyframe 100 leaves the window: its scores go
     S.clear_slot(wc, we, 0)
     s_c, s_e = S.window_scores(wc, we)

@@ -74,6 +74,8 @@ class MapperConfig:
     min_score_age: int = 100           # iterations of scoring before a Gaussian may be judged
     sc_storage_per_view: bool = True   # storage control compares S_C per window keyframe that sees the
                                        # Gaussian (S_C / #views) with sc_storage instead of the sum
+    sc_view_floor: float = 0.1         # per-view rule: a window keyframe "sees" a Gaussian when its
+                                       # contribution is >= this x the Gaussian's best window view
     prune_window_owned_only: bool = True  # storage control prunes only Gaussians whose ID(g) is a
                                        # window keyframe (False: the paper's rule on every Gaussian)
 
@@ -121,6 +123,8 @@ class MapperConfig:
             raise ValueError("delta_status, delta_storage and delta_k must be >= 1")
         if self.points_per_keyframe < 1:
             raise ValueError("points_per_keyframe must be >= 1")
+        if not 0 <= self.sc_view_floor <= 1:
+            raise ValueError(f"sc_view_floor must be in [0, 1], got {self.sc_view_floor}")
         if self.max_active < 1:
             raise ValueError("max_active must be >= 1")
         if len(self.adam_betas) != 2:

@@ -696,7 +696,7 @@ class Mapper:
             if cfg.prune_window_owned_only:
                 win = torch.tensor([x for x in self._slots if x != -1], dtype=gm.kf_id.dtype, device=gm.kf_id.device)
                 owned = torch.isin(gm.kf_id, win)
-            s_store = S.per_view_contribution(gm.win_c) if cfg.sc_storage_per_view else s_c
+            s_store = S.per_view_contribution(gm.win_c, cfg.sc_view_floor) if cfg.sc_storage_per_view else s_c
             prune = S.storage_control(gm.stable, s_store, judged, cfg.sc_storage, cfg.sc_status, owned)
             n = int(prune.sum())
             if n:

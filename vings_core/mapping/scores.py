@@ -27,12 +27,17 @@ def window_scores(win_c: torch.Tensor, win_e: torch.Tensor) -> tuple[torch.Tenso
     return win_c.sum(1), win_e.max(1).values
 
 
-def per_view_contribution(win_c: torch.Tensor) -> torch.Tensor:
-    """Window contribution per window keyframe that sees the Gaussian: ``S_C / #{slots with c > 0}``
-    (0 where no window keyframe sees it), (N,). Unlike the sum, it does not favour Gaussians seen by
-    many window keyframes over those at the edge of the window's views."""
-    n = (win_c > 0).sum(1).clamp_min(1)
-    return win_c.sum(1) / n.to(win_c.dtype)
+def per_view_contribution(win_c: torch.Tensor, view_floor: float = 0.1) -> torch.Tensor:
+    """Mean window contribution over the window keyframes that see the Gaussian, (N,) (0 where none
+    does). A keyframe "sees" it when its contribution is positive and at least ``view_floor`` x the
+    Gaussian's best window view: a faint touch (alpha tails at the edge of a splat) is not a view,
+    else it would halve the score of a Gaussian one keyframe sees well. Unlike the sum, it does not
+    favour Gaussians seen by many window keyframes over those at the edge of the window's views."""
+    if win_c.shape[1] == 0:
+        return torch.zeros(win_c.shape[0], dtype=win_c.dtype, device=win_c.device)
+    best = win_c.max(1, keepdim=True).values
+    seen = (win_c > 0) & (win_c >= view_floor * best)
+    return (win_c * seen).sum(1) / seen.sum(1).clamp_min(1).to(win_c.dtype)
 
 
 def record_render(win_c: torch.Tensor, win_e: torch.Tensor, kf_id: torch.Tensor, id_score: torch.Tensor,
