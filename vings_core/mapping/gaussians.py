@@ -190,8 +190,10 @@ class GaussianMap:
         """In place: move Gaussians rigidly by world-frame transforms.
 
         ``T``: (4, 4) for all ``rows`` or (M, 4, 4) one per selected row; ``rows``: bool mask or
-        indices (None = all). Means are transformed, rotations left-multiplied; Adam moments of means
-        and quats are rotated along (they are expressed in the world frame); second moments are kept.
+        indices (None = all). Means are transformed, rotations left-multiplied, SH bands >= 1
+        rotated (:func:`~vings_core.render.sh.rotate_sh`: the colour travels with the Gaussian);
+        Adam first moments of means, quats and SH are rotated along (they are expressed in the
+        world frame); second moments are kept.
         """
         sel = torch.arange(len(self), device=self.device) if rows is None else rows
         if sel.dtype == torch.bool:
@@ -217,6 +219,10 @@ class GaussianMap:
         self.quats[sel] = q.to(torch.float32)
         self.m_means[sel] = mm.to(torch.float32)
         self.m_quats[sel] = mq.to(torch.float32)
+        if self.sh.shape[1] > 1:
+            from ..render.sh import rotate_sh
+            self.sh[sel] = rotate_sh(self.sh[sel], R)
+            self.m_sh[sel] = rotate_sh(self.m_sh[sel], R)
 
 
 def field_names() -> Iterable[str]:

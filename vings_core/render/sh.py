@@ -69,3 +69,56 @@ def eval_sh(degree: int, sh: torch.Tensor, dirs: torch.Tensor) -> torch.Tensor:
 def sh_to_color(degree: int, sh: torch.Tensor, dirs: torch.Tensor) -> torch.Tensor:
     """Colour ``max(SH(dirs) + 0.5, 0)`` as in 3DGS/gsplat, ``(N, K, 3) -> (N, 3)``."""
     return torch.clamp_min(eval_sh(degree, sh, dirs) + 0.5, 0.0)
+
+
+def _basis(degree: int, dirs: torch.Tensor) -> torch.Tensor:
+    """``(N, K)`` values of the K basis functions at ``dirs (N, 3)`` (the renderer's own basis)."""
+    k = num_sh_bases(degree)
+    eye = torch.eye(k, dtype=dirs.dtype, device=dirs.device).expand(dirs.shape[0], k, k)
+    return eval_sh(degree, eye, dirs)
+
+
+_PROBE_DIRS: dict = {}
+
+
+def sh_rotation(R: torch.Tensor, degree: int) -> torch.Tensor:
+    """Matrices ``(M, K-1, K-1)`` that carry the SH bands 1..degree along a rotation ``R (M, 3, 3)``.
+
+    For a Gaussian rotated by ``R`` (world frame), ``sh'[1:] = D @ sh[1:]`` gives the colour it
+    showed before from the matching direction: ``SH'(d) = SH(R^T d)`` (the DC band is invariant).
+    Bands do not mix and the basis is orthonormal, so ``D`` is orthogonal (block diagonal); it is
+    found exactly as the least-squares map between the basis evaluated at fixed probe directions
+    and at the rotated ones. Differentiable in ``R`` (float64 recommended).
+    """
+    if not 1 <= degree <= 3:
+        raise ValueError(f"sh_rotation: degree must be 1..3, got {degree}")
+    key = (degree, R.dtype, R.device)
+    if key not in _PROBE_DIRS:
+        g = torch.Generator().manual_seed(0)
+        d = torch.randn(48, 3, generator=g, dtype=torch.float64)
+        d = (d / torch.linalg.norm(d, dim=1, keepdim=True)).to(R.dtype).to(R.device)
+        A = _basis(degree, d)[:, 1:]
+        _PROBE_DIRS[key] = (d, torch.linalg.pinv(A))
+    d, A_pinv = _PROBE_DIRS[key]
+    M = R.shape[0]
+    rd = torch.einsum("mji,nj->mni", R, d)               # R^T d for every rotation, (M, n, 3)
+    B = _basis(degree, rd.reshape(-1, 3)).reshape(M, d.shape[0], -1)[:, :, 1:]
+    return A_pinv @ B
+
+
+def rotate_sh(sh: torch.Tensor, R: torch.Tensor) -> torch.Tensor:
+    """SH coefficients ``(N, K, C)`` carried along rotations ``R`` (``(3, 3)`` for all rows or
+    ``(N, 3, 3)`` one per row): see :func:`sh_rotation`. Degree 0 is returned unchanged."""
+    degree = sh_degree_from_bases(sh.shape[1])
+    if degree == 0 or sh.shape[0] == 0:
+        return sh
+    dt = sh.dtype
+    R = R.to(torch.float64)
+    if R.ndim == 2:
+        D = sh_rotation(R[None], degree)[0].to(dt)
+        rest = D @ sh[:, 1:]
+    else:
+        uniq, inv = torch.unique(R.reshape(-1, 9), dim=0, return_inverse=True)
+        D = sh_rotation(uniq.reshape(-1, 3, 3), degree).to(dt)
+        rest = torch.index_select(D, 0, inv) @ sh[:, 1:]
+    return torch.cat([sh[:, :1], rest], 1)
