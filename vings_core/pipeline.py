@@ -32,7 +32,7 @@ import torch
 from .config import load_section
 from .errors import InputError, VingsError
 from .eval.image import psnr, ssim
-from .eval.output import RUN_RENDER_PREFIX, RunOutput, metrics_template, peak_rss_mb
+from .eval.output import CHECKPOINT_FILE, RUN_RENDER_PREFIX, RunOutput, metrics_template, peak_rss_mb  # noqa: F401
 from .eval.traj import evaluate_trajectory
 from .geometry import np_pose_compose, np_pose_inverse, np_se3_log, rotation_angle_deg
 from .io.base import Source, SourceOptions
@@ -40,7 +40,6 @@ from .types import Frame, Keyframe, Trajectory
 
 log = logging.getLogger("vings.run")
 
-CHECKPOINT_FILE = "checkpoint.pt"     # (also RunOutput.checkpoint_path)
 WRITEBACK_POLICIES = ("none", "all", "consistent")
 
 
