@@ -642,7 +642,9 @@ class SlamRunner:
                     self._submit(kf, worker)
             bar.close()
             if worker is not None and self._queue.qsize():
-                log.info("tracking done; the mapper is finishing %d queued keyframe(s)", self._queue.qsize())
+                n_kf = sum(1 for m in list(self._queue.queue) if m is not None and m[0] == "kf")
+                log.info("tracking done; the mapper is finishing %d queued keyframe(s) (Ctrl-C stops it; "
+                         "the trajectory is kept)", n_kf)
             self._stop_worker(worker)
             self._raise_mapper_error()
             self._take_corrections()
