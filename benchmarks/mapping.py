@@ -42,7 +42,6 @@ import argparse
 import json
 import math
 import os
-import resource
 import sys
 import time
 from dataclasses import replace
@@ -51,6 +50,7 @@ import numpy as np
 import torch
 
 from vings_core.eval.image import psnr, ssim
+from vings_core.eval.output import peak_rss_mb  # since start or the last reset_peak_rss()
 from vings_core.geometry import np_se3_exp, rotation_angle_deg
 from vings_core.mapping import Mapper, MapperConfig
 from vings_core.types import Keyframe
@@ -61,18 +61,6 @@ T0_NS = 1_700_000_000_000_000_000
 
 def log(*a) -> None:
     print("[bench mapping]", *a, file=sys.stderr, flush=True)
-
-
-def peak_rss_mb() -> float:
-    """Peak resident set size of this process (MB) since start or the last :func:`reset_peak_rss`."""
-    try:
-        with open("/proc/self/status") as f:
-            for line in f:
-                if line.startswith("VmHWM:"):
-                    return int(line.split()[1]) / 1024.0
-    except OSError:
-        pass
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
 _EARLIER_PEAK_MB = 0.0      # the process's peak before the last reset

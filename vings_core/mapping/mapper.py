@@ -31,7 +31,7 @@ from ..config import config_from_dict
 from ..errors import ConfigError, InputError
 from ..geometry import np_project_rotation, pose_inverse, rotmat_to_quat, se3_exp
 from ..render import rasterize_2dgs
-from ..render.sh import sh_rotation
+from ..render.sh import rotate_sh
 from ..types import CameraModel, Keyframe
 from ..util import NPZ_READ_ERRORS, atomic_write, log
 from . import scores as S
@@ -772,11 +772,9 @@ class Mapper:
                 means = (Dg[:, :3, :3] @ gm.means[:, :, None])[:, :, 0] + Dg[:, :3, 3]
                 qd = torch.index_select(rotmat_to_quat(Wd[:, :3, :3]).to(torch.float32), 0, inv)
                 quats = quat_multiply(qd, gm.quats)
-                moved = {"means": means, "quats": quats}
-                if cfg.sh_degree > 0:       # view-dependent colour turns with its Gaussian
-                    Dsh = sh_rotation(Wd[:, :3, :3], cfg.sh_degree).to(torch.float32)
-                    moved["sh"] = torch.cat([gm.sh[:, :1], torch.index_select(Dsh, 0, inv) @ gm.sh[:, 1:]], 1)
-                out = self._rasterize(gm, T_cw.to(torch.float32), kf.camera, sample_ratio=1.0, **moved)
+                sh = rotate_sh(gm.sh, Wd[:, :3, :3], inv)    # view-dependent colour turns along
+                out = self._rasterize(gm, T_cw.to(torch.float32), kf.camera, sample_ratio=1.0,
+                                      means=means, quats=quats, sh=sh)
             else:
                 out = self._rasterize(gm, T_cw.to(torch.float32), kf.camera, sample_ratio=1.0)
             terms: dict = {}

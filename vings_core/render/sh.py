@@ -106,19 +106,19 @@ def sh_rotation(R: torch.Tensor, degree: int) -> torch.Tensor:
     return A_pinv @ B
 
 
-def rotate_sh(sh: torch.Tensor, R: torch.Tensor) -> torch.Tensor:
-    """SH coefficients ``(N, K, C)`` carried along rotations ``R`` (``(3, 3)`` for all rows or
-    ``(N, 3, 3)`` one per row): see :func:`sh_rotation`. Degree 0 is returned unchanged."""
+def rotate_sh(sh: torch.Tensor, R: torch.Tensor, index: torch.Tensor | None = None) -> torch.Tensor:
+    """SH coefficients ``(N, K, C)`` carried along rotations (see :func:`sh_rotation`): ``R (3, 3)``
+    for all rows, ``(N, 3, 3)`` one per row, or ``(M, 3, 3)`` with ``index (N,)`` naming each row's
+    rotation (differentiable in ``R``; the per-row form is not). Degree 0 is returned unchanged."""
     degree = sh_degree_from_bases(sh.shape[1])
     if degree == 0 or sh.shape[0] == 0:
         return sh
     dt = sh.dtype
     R = R.to(torch.float64)
     if R.ndim == 2:
-        D = sh_rotation(R[None], degree)[0].to(dt)
-        rest = D @ sh[:, 1:]
-    else:
-        uniq, inv = torch.unique(R.reshape(-1, 9), dim=0, return_inverse=True)
-        D = sh_rotation(uniq.reshape(-1, 3, 3), degree).to(dt)
-        rest = torch.index_select(D, 0, inv) @ sh[:, 1:]
-    return torch.cat([sh[:, :1], rest], 1)
+        R, index = R[None], torch.zeros(sh.shape[0], dtype=torch.long, device=sh.device)
+    elif index is None:     # one per row: each distinct rotation once
+        R, index = torch.unique(R.reshape(-1, 9), dim=0, return_inverse=True)
+        R = R.reshape(-1, 3, 3)
+    D = sh_rotation(R, degree).to(dt)
+    return torch.cat([sh[:, :1], torch.index_select(D, 0, index) @ sh[:, 1:]], 1)
