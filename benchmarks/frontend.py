@@ -112,6 +112,7 @@ def run_sequence(name: str, workdir: Path, frames: int, cfg: FrontendConfig) -> 
     if src is None:
         return {"skipped": f"data not found under {SHARED}"}
     fe = Frontend(cfg, src.calibration.camera)
+    fe.keep_lowres_depth = True           # the depth-calibration figures read the BA-grid depths
     kfs = []
     t_proc = c_proc = 0.0
     n = 0

@@ -189,6 +189,13 @@ def test_config_from_params_yaml_and_validation(tmp_path):
         load_section(FrontendConfig, "frontend", p)
     with pytest.raises(ConfigError, match="flow_weights_path"):
         load_section(FrontendConfig, "frontend", None, {"flow_method": "torchscript"})
+    # NaN would disable the check it feeds; contradictory or out-of-range values
+    for bad, what in (({"keyframe_flow_lr_px": float("nan")}, "keyframe_flow_lr_px"),
+                      ({"min_inv_depth": 100.0, "max_inv_depth": 1.0}, "min_inv_depth"),
+                      ({"keyframe_conf_ratio": -1.0}, "keyframe_conf_ratio"),
+                      ({"relocalize_frames": 0}, "relocalize_frames")):
+        with pytest.raises(ConfigError, match=what):
+            load_section(FrontendConfig, "frontend", None, bad)
 
 
 def test_torchscript_flow_plugin_loads_local_file_only(tmp_path):

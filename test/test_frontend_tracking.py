@@ -277,3 +277,93 @@ def test_black_frame_while_waiting_keeps_the_reference(box_sequence):
     assert any("almost no texture" in e for e in fe.events)
     # the frames before the black one are re-posed at initialisation, not left behind
     assert st[frames[0].stamp_ns] == "tracking" and st[frames[1].stamp_ns] == "tracking"
+
+
+def test_non_finite_flow_is_ignored_not_a_silent_freeze(box_sequence):
+    """A flow plug-in that returns NaN somewhere: those pixels carry no information, tracking and
+    the window BA keep working (before: 0 * NaN made every cost NaN, no LM step was ever accepted
+    and the checks, written as `x > limit`, passed the unmoved prediction as tracked)."""
+    from vings_core.frontend.flow import DISFlow
+
+    class NanDIS(DISFlow):
+        def flow(self, a, b, init=None):
+            f = super().flow(a, b, init)
+            f[50:54, 70:74] = np.nan
+            return f
+
+    frames, poses, _ = box_sequence
+    fe = Frontend(_cfg(), CAM)
+    fe.flow_est = NanDIS("medium", 1)
+    for f in frames:
+        fe.process(f)
+    assert fe.stats["lost_frames"] == 0 and fe.stats["segments"] == 1
+    ate, path, n, _ = _ate(fe, frames, poses)
+    assert n == len(frames) and ate < 0.01 * path
+    # the checks themselves refuse NaN
+    from vings_core.frontend.ba import MotionResult
+    nan_mo = MotionResult(torch.eye(4, dtype=torch.float64), torch.eye(6), float("nan"), 1.0, 0.0, 1)
+    gf = type("G", (), {"conf_frac": 1.0})()
+    assert "residual RMS" in fe._check_track(gf, nan_mo)
+
+
+def test_constant_velocity_prediction_follows_the_time_stamps(box_sequence):
+    """Two dropped frames (the stamps jump three intervals): the prediction for the next frame
+    extrapolates the motion over the real time span, before and after the gap."""
+    frames, _, _ = box_sequence
+    fe = Frontend(_cfg(), CAM)
+    errs = {}
+    keep = [k for k in range(24) if k not in (15, 16)]
+    prev = None
+    for b in keep:
+        T_pred = fe._predict(frames[b].stamp_ns).numpy() if prev is not None and prev >= 10 else None
+        fe.process(frames[b])
+        if T_pred is not None:
+            T_true = np.linalg.inv(fe.pose(frames[b].stamp_ns))
+            errs[(prev, b)] = float(np.linalg.norm((T_pred @ np.linalg.inv(T_true))[:3, 3]))
+        prev = b
+    normal = max(e for (a, b), e in errs.items() if b - a == 1 and a != 17)
+    # across the gap and right after it the error stays at the level of ordinary frames
+    assert errs[(14, 17)] < 3 * normal + 1e-3 and errs[(17, 18)] < 3 * normal + 1e-3
+
+
+def test_scale_correction_rescales_depth_variances_too(box_sequence):
+    """set_poses with a scale change divides window inverse depths by r and their variances by r^2:
+    the relative depth uncertainty is scale-free."""
+    frames, _, _ = box_sequence
+    fe = Frontend(_cfg(), CAM)
+    for f in frames[:30]:
+        fe.process(f)
+    kf = fe.window[-1]
+    m = torch.isfinite(kf.var)
+    rel0 = (kf.var[m].sqrt() / kf.d[m]).median()
+    tr = fe.trajectory()
+    scaled = {}
+    for s, T in zip(tr.stamps_ns, tr.poses):
+        T2 = T.copy()
+        T2[:3, 3] *= 2.0
+        scaled[int(s)] = T2
+    fe.set_poses(scaled)
+    kf = fe.window[-1]
+    rel1 = (kf.var[m].sqrt() / kf.d[m]).median()
+    assert torch.isclose(rel1, rel0, rtol=1e-9)
+
+
+def test_keyframe_pose_changes_are_reported_without_scanning_the_history(box_sequence):
+    frames, _, _ = box_sequence
+    fe = Frontend(_cfg(), CAM)
+    for f in frames[:24]:
+        fe.process(f)
+    v = fe.kf_pose_version
+    assert fe.keyframes_moved_since(v) == []
+    kfs = fe.keyframe_trajectory().stamps_ns.tolist()
+    old = int(kfs[0])
+    fe.set_poses({old: fe.pose(old) @ np.diag([1.0, 1.0, 1.0, 1.0])})
+    assert fe.keyframes_moved_since(v) == [old]
+    v2 = fe.kf_pose_version
+    fe.process(frames[24])
+    moved = fe.keyframes_moved_since(v2)
+    assert old not in moved and set(moved) <= {k.stamp for k in fe.window}
+    assert fe.lowres_depth == {}          # kept only on request (benchmarks)
+    tr = fe.trajectory(max_poses=5)
+    full = fe.trajectory()
+    assert len(tr) == 5 and tr.stamps_ns[0] == full.stamps_ns[0] and tr.stamps_ns[-1] == full.stamps_ns[-1]

@@ -343,6 +343,12 @@ def test_depth_normal_and_accumulation_losses():
     assert float(depth_loss(d * 1.1, d, torch.ones_like(d), valid)) == pytest.approx(0.1, rel=1e-5)
     w = torch.full_like(d, 0.5)
     assert float(depth_loss(d * 1.1, d, w, valid)) == pytest.approx(0.05, rel=1e-5)
+    # a masked pixel with infinite (or NaN) ground truth does not make the loss NaN
+    g2 = d.clone()
+    g2[0, 0], g2[0, 1] = float("inf"), float("nan")
+    v2 = valid.clone()
+    v2[0, :2] = False
+    assert float(depth_loss(d * 1.1, g2, torch.ones_like(d), v2)) == pytest.approx(0.1, rel=1e-5)
     # infinite inverse-depth variance (no depth, depth 0) gives weight 0, never NaN
     from vings_core.mapping.losses import depth_weight
     wd = depth_weight(torch.tensor([0.0, 2.0, 2.0]), torch.tensor([float("inf"), float("inf"), 0.0]), 0.02)
@@ -681,6 +687,46 @@ def test_bad_checkpoint_and_bad_keyframes_give_clear_errors(tmp_path, room_small
         m.set_keyframe_poses({12345: np.eye(4)})
 
 
+def test_bad_keyframe_content_is_refused_before_any_change(room_small):
+    """Images outside [0, 1] (8-bit, 0..255), non-finite pixels, mis-shaped depth / variance /
+    validity, negative variance: clear errors, nothing of the keyframe kept (it can be re-sent
+    corrected), and a rejected first keyframe does not fix the camera model."""
+    from dataclasses import replace
+    cam, frames = room_small
+    f = frames[0]
+    H, W = cam.height, cam.width
+    nan_img = f.image.clone()
+    nan_img[3, 4, 1] = float("nan")
+    wide = torch.zeros(H, W, 2)
+    bad = [(replace(f, image=(f.image * 255).round().to(torch.uint8)), "dtype torch.uint8"),
+           (replace(f, image=f.image * 255), r"values must lie in \[0, 1\]"),
+           (replace(f, image=nan_img), "non-finite"),
+           (replace(f, depth=torch.stack([f.depth, f.depth], -1)), "depth must have shape"),
+           (replace(f, inv_depth_var=wide), "inv_depth_var must have shape"),
+           (replace(f, valid=wide > 0), "valid must have shape"),
+           (replace(f, inv_depth_var=torch.full((H, W), -1.0)), "negative")]
+    m = Mapper(MapperConfig(points_per_keyframe=100))
+    other_cam = _kf(f.stamp_ns, f.T_wc, torch.full((20, 30), 2.0), _cam(30, 20))
+    other_cam = replace(other_cam, depth=torch.full((20, 30), float("nan")))
+    with pytest.raises(InputError, match="non-finite"):
+        m.add_keyframe(other_cam)
+    for kf, msg in bad:
+        with pytest.raises(InputError, match=msg):
+            m.add_keyframe(kf)
+        assert len(m.window) == 0 and m.num_gaussians == 0 and m.keyframe_poses() == {}
+    info = m.add_keyframe(f)                       # the corrected keyframe, same stamp, same camera
+    assert info["added"] == m.num_gaussians > 0
+    m.train(2)
+
+
+def test_reported_additions_are_the_gaussians_added():
+    """More Gaussians asked for than there are pixels: one per pixel, and that is what is reported."""
+    cam = _cam(16, 12, 15.0)
+    m = Mapper(MapperConfig(points_per_keyframe=20000))
+    info = m.add_keyframe(_kf(1, np.eye(4), torch.full((12, 16), 2.0), cam))
+    assert info["added"] == m.num_gaussians == m.counters["added"] <= 16 * 12
+
+
 def test_set_keyframe_poses_moves_owned_gaussians_and_render_sees_passive(room_small):
     cam, frames = room_small
     m = Mapper(MapperConfig(points_per_keyframe=800, iters_per_keyframe=2, sample_ratio=1.0, tau=0.05, delta_k=1))
@@ -925,3 +971,21 @@ def test_se3_exp_safe_matches_geometry_and_has_finite_gradient_at_zero():
     # d/dphi of (R p) at 0 is -[p]x; summed over rows: (1,1,1) . (-[p]x) = p x (1,1,1)
     assert torch.isfinite(x.grad).all()
     assert torch.allclose(x.grad[3:], torch.linalg.cross(p, torch.ones(3, dtype=torch.float64)))
+
+
+def test_history_keyframe_with_far_depth_keeps_the_loss_finite():
+    """Depth beyond float16's range (ground-truth sky at 1e5 m) in a keyframe that left the window:
+    history training reports a finite loss (before: inf / inf = NaN in the depth term)."""
+    cam = _cam(48, 32, 40.0)
+    d = torch.full((32, 48), 2.0)
+    d[:8] = 1.0e5
+    img = torch.rand(32, 48, 3, generator=torch.Generator().manual_seed(0)) * 0.6 + 0.2
+    m = Mapper(MapperConfig(points_per_keyframe=400, window_size=1, history_ratio=0.9, score_manager=False))
+    m.add_keyframe(_kf(1, np.eye(4), d, cam, image=img))
+    m.train(2)
+    T = np.eye(4)
+    T[0, 3] = 0.02
+    m.add_keyframe(_kf(2, T, d, cam, image=img))
+    assert torch.isfinite(m._history[1]["depth"].float()).all()
+    t = m.train(20)
+    assert math.isfinite(t["loss"]) and math.isfinite(t["depth"])

@@ -167,12 +167,34 @@ def _se3(rho, phi):
     return np_se3_exp(np.asarray(list(rho) + list(phi), np.float64))
 
 
+class _WrittenPoses(dict):
+    """Pose dict that counts writes, as the tracker's ``kf_pose_version`` does."""
+
+    def __init__(self, poses):
+        super().__init__()
+        self.version, self.written = 0, {}
+        for s, P in poses.items():
+            self[s] = P
+
+    def __setitem__(self, s, P):
+        super().__setitem__(s, P)
+        self.version += 1
+        self.written[s] = self.version
+
+
 class _FakeFrontend:
     """Front end stand-in: keyframe poses, set_poses, an optional pose system."""
 
     def __init__(self, poses):
-        self.poses = {int(s): np.array(P) for s, P in poses.items()}
+        self.poses = _WrittenPoses({int(s): np.array(P) for s, P in poses.items()})
         self.pose_system = None
+
+    @property
+    def kf_pose_version(self):
+        return self.poses.version
+
+    def keyframes_moved_since(self, version):
+        return [s for s, v in self.poses.written.items() if v > version]
 
     def keyframe_trajectory(self):
         from vings_core.types import Trajectory
@@ -183,7 +205,8 @@ class _FakeFrontend:
         return self.poses[int(s)].copy()
 
     def set_poses(self, poses):
-        self.poses.update({int(s): np.array(P) for s, P in poses.items()})
+        for s, P in poses.items():
+            self.poses[int(s)] = np.array(P)
 
 
 class _FakeMapper:

@@ -337,17 +337,26 @@ class FrontendPoseLink:
         self.ack = 0            # last correction batch processed (echoed with every update)
         self.stats = dict(corrections=0, applied=0, rejected=0, tests=0, tests_failed=0, last_q=None,
                           last_q_limit=None)
+        self._version = 0       # the front end's kf_pose_version at the last outgoing()
+        self._recheck: set[int] = set()   # keyframes with a correction since (maybe rejected)
 
     def keyframe_sent(self, kf: Keyframe) -> None:
         self.sent[int(kf.stamp_ns)] = kf.T_wc.detach().cpu().numpy().astype(np.float64).copy()
 
     def outgoing(self, frontend) -> PoseUpdates:
-        """Keyframe poses to send to the mapper (absolute ``T_wc``), with the batch ``ack``."""
-        traj = frontend.keyframe_trajectory()
+        """Keyframe poses to send to the mapper (absolute ``T_wc``), with the batch ``ack``. Only
+        keyframes the front end wrote since the last call, or that got a correction, are compared
+        (``frontend.keyframes_moved_since``): the cost does not grow with the history."""
+        stamps = set(frontend.keyframes_moved_since(self._version)) | self._recheck
+        self._version = frontend.kf_pose_version
+        self._recheck = set()
         moved = PoseUpdates(ack=self.ack)
-        for s, P in zip(traj.stamps_ns.tolist(), traj.poses):
+        for s in sorted(stamps):
             old = self.sent.get(int(s))
-            if old is not None and _differs(P, old):
+            if old is None:
+                continue
+            P = frontend.pose(s)
+            if _differs(P, old):
                 moved[int(s)] = P.copy()
                 self.sent[int(s)] = P.copy()
         return moved
@@ -361,6 +370,7 @@ class FrontendPoseLink:
             return {}
         for s, C in corrections.items():
             self.sent[s] = np_pose_compose(C, self.sent[s])          # what the mapper now holds
+        self._recheck.update(corrections)     # a rejected one is undone by the next outgoing()
         self.stats["corrections"] += len(corrections)
         accepted = self._accept(frontend, corrections)
         if accepted:

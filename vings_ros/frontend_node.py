@@ -233,13 +233,9 @@ class FrontendNode(Node):
                                                     stamp_ns=moved.ack))
 
     def _publish_path(self) -> None:
-        traj = self.frontend.trajectory(states=("tracking",))
+        traj = self.frontend.trajectory(states=("tracking",), max_poses=self.ncfg.path_max_poses)
         if len(traj) == 0:
             return
-        n = self.ncfg.path_max_poses
-        if len(traj) > n:
-            idx = np.linspace(0, len(traj) - 1, n).round().astype(int)
-            traj = Trajectory(traj.stamps_ns[idx], traj.poses[idx])
         self.pub_path.publish(trajectory_to_path(traj, self.ncfg.world_frame))
 
     def _publish_diagnostics(self) -> None:

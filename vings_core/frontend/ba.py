@@ -64,6 +64,17 @@ class NormalEquations(NamedTuple):
     W: torch.Tensor      #: (E, P) effective weights used (information x robust x valid)
 
 
+def finite_targets(target: torch.Tensor, weight: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(target, weight)`` with non-finite targets (or weights) replaced by 0 at weight 0: a
+    weight-0 residual must not turn the cost into ``0 * NaN = NaN`` (which no LM step can lower,
+    so BA and tracking would silently stop moving)."""
+    bad = ~(torch.isfinite(target).all(-1) & torch.isfinite(weight))
+    if not bool(bad.any()):
+        return target, weight
+    return (torch.where(bad[..., None], torch.zeros((), dtype=target.dtype), target),
+            torch.where(bad, torch.zeros((), dtype=weight.dtype), weight))
+
+
 def _onehot(idx: torch.Tensor, n: int) -> torch.Tensor:
     """``(n, len(idx))`` float64 matrix with ones at ``(idx[k], k)``: ``O @ X`` sums rows of ``X``
     into the slots ``idx``."""
@@ -77,6 +88,7 @@ def assemble(T_cw: torch.Tensor, d: torch.Tensor, ii: torch.Tensor, jj: torch.Te
              loss: str = "huber", delta: float = 2.0) -> NormalEquations:
     """Linearise all edges and scatter the Hessian blocks (paper Eq. "hessian matrix")."""
     M, P = d.shape
+    target, weight = finite_targets(target, weight)
     lin = linearize_edges(T_cw, d, ii, jj, rays, target, K, need_ji=False)
     rn = torch.linalg.norm(lin.r, dim=-1)
     W = weight * lin.valid.to(DT)
@@ -225,6 +237,7 @@ def bundle_adjust(T_cw: torch.Tensor, d: torch.Tensor, ii: torch.Tensor, jj: tor
     """
     T_cw = T_cw.to(DT)
     d = d.to(DT)
+    target, weight = finite_targets(target, weight)
     M = T_cw.shape[0]
     fixed = torch.zeros(M, dtype=torch.bool)
     fixed[:n_fixed] = True
@@ -350,6 +363,7 @@ def motion_only(T_kf: torch.Tensor, d_kf: torch.Tensor, rays: torch.Tensor, targ
     depth error they cause is added to the flow noise (``1/w <- 1/w + |J_d|^2 var``, evaluated at
     ``T_init``), so pixels with unknown depth do not pull the pose."""
     N = T_kf.shape[0]
+    target, weight = finite_targets(target, weight)
     if d_var is not None:
         ii0 = torch.arange(N)
         jj0 = torch.full((N,), N, dtype=torch.long)

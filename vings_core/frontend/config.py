@@ -5,7 +5,8 @@ resolution they are measured: ``*_lr_px`` at the 1/8 BA grid, ``*_px`` at the wo
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+import math
+from dataclasses import dataclass, fields
 
 ROBUST_LOSSES = ("huber", "cauchy", "none")
 FLOW_METHODS = ("dis", "torchscript")
@@ -71,6 +72,11 @@ class FrontendConfig:
     num_threads: int = 1                 #: torch threads while the front end runs (0 = leave as is)
 
     def validate(self) -> None:
+        for f in fields(self):
+            v = getattr(self, f.name)
+            if isinstance(v, float) and not math.isfinite(v):
+                # NaN passes every ``x > limit`` test below and disables the check it feeds
+                raise ValueError(f"{f.name} must be a finite number, got {v}")
         if self.flow_method not in FLOW_METHODS:
             raise ValueError(f"flow_method must be one of {FLOW_METHODS}, got {self.flow_method!r}")
         if self.flow_method == "torchscript" and not self.flow_weights_path:
@@ -99,6 +105,22 @@ class FrontendConfig:
             raise ValueError(f"emit_delay must be in [0, window), got {self.emit_delay}")
         for name in ("fb_sigma_px", "photo_sigma", "texture_tau", "block_spread_sigma_px",
                      "flow_sigma_px", "robust_delta_px", "upsample_sigma_spatial",
-                     "upsample_sigma_range"):
+                     "upsample_sigma_range", "max_track_rms_px", "init_ransac_px",
+                     "max_rel_depth_std", "max_depth_factor", "far_factor"):
             if getattr(self, name) <= 0:
                 raise ValueError(f"{name} must be positive")
+        for name in ("keyframe_conf_ratio", "min_confident_frac", "min_weight", "init_min_inlier_frac"):
+            if not 0.0 <= getattr(self, name) <= 1.0:
+                raise ValueError(f"{name} must be in [0, 1], got {getattr(self, name)}")
+        for name in ("proximity_flow_lr_px", "init_min_parallax_lr_px", "still_flow_lr_px",
+                     "textureless_grad", "lm_lambda"):
+            if getattr(self, name) < 0:
+                raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
+        if not 0 < self.min_inv_depth < self.max_inv_depth:
+            raise ValueError(f"need 0 < min_inv_depth < max_inv_depth, got {self.min_inv_depth} and "
+                             f"{self.max_inv_depth}")
+        for name in ("ba_iters", "init_ba_iters", "track_iters", "relocalize_frames"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+        if self.max_edges_per_keyframe < 0:
+            raise ValueError(f"max_edges_per_keyframe must be >= 0, got {self.max_edges_per_keyframe}")

@@ -215,14 +215,20 @@ def grid_flow(flow_ij: np.ndarray, flow_ji: Optional[np.ndarray], img_i: np.ndar
     """
     H, W = img_i.shape[:2]
     h, w = H // stride, W // stride
+    # a non-finite flow (a learned plug-in's overflow) is no measurement: confidence 0 there, and
+    # a finite stand-in so that no NaN reaches the block means or the BA targets
+    fin = np.isfinite(flow_ij).all(-1)
+    if not fin.all():
+        flow_ij = np.where(fin[..., None], flow_ij, 0.0).astype(np.float32)
     ys, xs = np.mgrid[0:H, 0:W].astype(np.float32)
     mx = xs + flow_ij[..., 0]
     my = ys + flow_ij[..., 1]
     inb = (mx >= 0) & (mx <= W - 1) & (my >= 0) & (my <= H - 1)
-    c = inb.astype(np.float32)
+    c = (inb & fin).astype(np.float32)
     if flow_ji is not None:
         back = cv2.remap(flow_ji, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
         e2 = ((flow_ij + back) ** 2).sum(-1)
+        e2 = np.where(np.isfinite(e2), e2, np.inf)      # no valid backward flow: inconsistent
         c = c / (1.0 + e2 / cfg.fb_sigma_px ** 2)
     warped = cv2.remap(img_j.astype(np.float32), mx, my, cv2.INTER_LINEAR,
                        borderMode=cv2.BORDER_REPLICATE)

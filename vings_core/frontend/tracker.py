@@ -25,7 +25,7 @@ import numpy as np
 import torch
 
 from ..errors import ConfigError, InputError
-from ..geometry import pose_inverse
+from ..geometry import pose_inverse, se3_exp, se3_log
 from ..types import CameraModel, Frame, Keyframe, PoseEstimate, Trajectory
 from . import ba as BA
 from .config import FrontendConfig
@@ -181,8 +181,14 @@ class Frontend:
                       "relocalisations": 0, "t_flow": 0.0, "t_track": 0.0, "t_ba": 0.0,
                       "t_emit": 0.0, "t_total": 0.0}
         self.events: list[str] = []
-        #: stamp -> (inverse depth, marginal variance) on the BA grid (h, w) of emitted keyframes
+        #: stamp -> (inverse depth, marginal variance) on the BA grid (h, w) of emitted keyframes,
+        #: kept only when ``keep_lowres_depth`` is set (benchmarks; ~90 kB per keyframe at 752x480)
+        self.keep_lowres_depth = False
         self.lowres_depth: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+        #: counts keyframe-pose writes; ``_kf_written`` maps a keyframe to the count at its last
+        #: write, in write order (see :meth:`keyframes_moved_since`)
+        self.kf_pose_version = 0
+        self._kf_written: dict[int, int] = {}
 
     # ------------------------------------------------------------------------------- public
 
@@ -222,12 +228,27 @@ class Frontend:
             raise InputError(f"frontend.pose: stamp {stamp_ns} was never processed by the front end")
         return np.linalg.inv(self._T_cw_of(int(stamp_ns)))
 
-    def trajectory(self, states: tuple = STATES) -> Trajectory:
+    def trajectory(self, states: tuple = STATES, max_poses: Optional[int] = None) -> Trajectory:
         """Every processed frame's current ``T_wc`` (cam0-to-world), optionally only those whose
-        latest state is in ``states``."""
+        latest state is in ``states``; ``max_poses``: at most that many, evenly spread over them
+        (first and last kept), so a periodic display of a long run does not cost O(history) poses."""
         st = [s for s in self._order if self._buffer[s].state in states]
+        if max_poses is not None and len(st) > max_poses:
+            idx = np.linspace(0, len(st) - 1, max(int(max_poses), 2)).round().astype(int)
+            st = [st[i] for i in idx]
         poses = np.stack([self.pose(s) for s in st]) if st else np.zeros((0, 4, 4))
         return Trajectory(np.asarray(st, np.int64), poses)
+
+    def keyframes_moved_since(self, version: int) -> list[int]:
+        """Keyframes whose pose was written (window BA, :meth:`set_poses`, a new keyframe) after
+        ``kf_pose_version`` had the value ``version``; cost proportional to their number, not to
+        the history (a consumer polls this every frame)."""
+        out = []
+        for s in reversed(self._kf_written):
+            if self._kf_written[s] <= version:
+                break
+            out.append(s)
+        return out
 
     def keyframe_trajectory(self) -> Trajectory:
         st = sorted(self._kf_T_cw)
@@ -260,7 +281,7 @@ class Frontend:
             s = int(s)
             if s in self._kf_T_cw:
                 T_cw = np.linalg.inv(np.asarray(T, np.float64))
-                self._kf_T_cw[s] = T_cw
+                self._set_kf_pose(s, T_cw)
                 if s in win:
                     win[s].T_cw = torch.from_numpy(T_cw.copy())
         for s, T in poses_wc.items():
@@ -286,6 +307,8 @@ class Frontend:
                 if abs(r - 1.0) > 1e-3 and r > 0:
                     for kf in self.window:
                         kf.d = kf.d / r
+                        if kf.var is not None:
+                            kf.var = kf.var / (r * r)     # var(d / r) = var(d) / r^2
         if self._last is not None:
             self._last = (self._last[0], torch.from_numpy(self._T_cw_of(self._last[0])))
         if self._prev is not None:
@@ -319,6 +342,12 @@ class Frontend:
         if self._last_stamp is not None and frame.stamp_ns <= self._last_stamp:
             raise InputError(f"frame {frame.stamp_ns}: stamps must increase (previous "
                              f"{self._last_stamp})")
+
+    def _set_kf_pose(self, stamp: int, T_cw: np.ndarray) -> None:
+        self._kf_T_cw[stamp] = T_cw
+        self.kf_pose_version += 1
+        self._kf_written.pop(stamp, None)          # re-insert: the dict stays in write order
+        self._kf_written[stamp] = self.kf_pose_version
 
     def _T_cw_of(self, stamp: int) -> np.ndarray:
         if stamp in self._kf_T_cw:
@@ -511,8 +540,8 @@ class Frontend:
         self.graph.clear()
         self.graph.add(Edge(kf0.stamp, kf1.stamp, gf.target, gf.weight))
         self.graph.add(Edge(kf1.stamp, kf0.stamp, gb.target, gb.weight))
-        self._kf_T_cw[kf0.stamp] = kf0.T_cw.numpy().copy()
-        self._kf_T_cw[kf1.stamp] = kf1.T_cw.numpy().copy()
+        self._set_kf_pose(kf0.stamp, kf0.T_cw.numpy().copy())
+        self._set_kf_pose(kf1.stamp, kf1.T_cw.numpy().copy())
         out = []
         # frames that waited: motion-only against the reference keyframe with their stored flow
         for stamp, g in ref.pending[:-1]:
@@ -545,14 +574,20 @@ class Frontend:
 
     # --------------------------------------------------------------------------- tracking
 
-    def _predict(self) -> torch.Tensor:
-        """Constant-velocity prediction of the next T_cw (re-orthonormalised: composing poses
-        repeatedly would otherwise let rounding errors grow geometrically)."""
+    def _predict(self, stamp_ns: int) -> torch.Tensor:
+        """Constant-velocity prediction of ``T_cw`` at ``stamp_ns`` (re-orthonormalised: composing
+        poses repeatedly would otherwise let rounding errors grow geometrically). The motion between
+        the last two tracked frames is scaled by the time ratio, so dropped or lost frames in
+        between (or uneven frame intervals) do not make the prior a few frame-steps off."""
         if self._last is None:
             return self.window[-1].T_cw.clone()
         if self._prev is None:
             return self._last[1].clone()
         delta = self._last[1] @ pose_inverse(self._prev[1])
+        span = self._last[0] - self._prev[0]
+        ratio = (int(stamp_ns) - self._last[0]) / span if span > 0 else 1.0
+        if ratio != 1.0:
+            delta = se3_exp(ratio * se3_log(delta))
         return orthonormalize(delta @ self._last[1])
 
     def _chained_base(self, f_to_last: np.ndarray, last_gray: np.ndarray,
@@ -619,16 +654,17 @@ class Frontend:
                     f"{cfg.min_confident_frac:.2f})")
         if not bool(torch.isfinite(mo.T_cw).all()):
             return "motion-only BA diverged (non-finite pose)"
-        if mo.rms_px > cfg.max_track_rms_px:
+        # written so that NaN fails (NaN > x is False)
+        if not mo.rms_px <= cfg.max_track_rms_px:
             return f"flow disagrees with the map (residual RMS {mo.rms_px:.1f} px)"
-        if mo.inlier_frac < 0.3:
+        if not mo.inlier_frac >= 0.3:
             return f"only {100 * mo.inlier_frac:.0f}% of confident pixels agree with the pose"
         return None
 
     def _step_tracking(self, frame: Frame, gray: np.ndarray) -> list[PoseEstimate]:
         stamp = frame.stamp_ns
         tex = self._tex(gray)
-        T_pred = self._predict()
+        T_pred = self._predict(stamp)
         kf = self.window[-1]
         gf, gb, mo = self._track_against(kf, gray, T_pred, tex)
         why = self._check_track(gf, mo)
@@ -814,12 +850,13 @@ class Frontend:
                                delta=cfg.robust_delta_px, lam=cfg.lm_lambda,
                                d_bounds=self._d_bounds(d))
         self.stats["t_ba"] += time.perf_counter() - t
-        if not (torch.isfinite(res.T_cw).all() and torch.isfinite(res.d).all()) or res.cost > res.cost0 * 1.0001:
+        if not (torch.isfinite(res.T_cw).all() and torch.isfinite(res.d).all()
+                and res.cost <= res.cost0 * 1.0001):       # also refuses a NaN cost
             return None
         for k, Tk, dk in zip(self.window, orthonormalize(res.T_cw), res.d):
             k.T_cw = Tk.clone()
             k.d = dk.clone()
-            self._kf_T_cw[k.stamp] = Tk.numpy().copy()
+            self._set_kf_pose(k.stamp, Tk.numpy().copy())
         return res
 
     def _after_window_change(self, r_ne: Optional[BA.NormalEquations]) -> None:
@@ -858,8 +895,9 @@ class Frontend:
                          cfg.upsample_spread_var, cfg.max_rel_depth_std, cfg.max_depth_factor,
                          cfg.far_factor, cfg.textureless_grad)
         kf.emitted = True
-        self.lowres_depth[kf.stamp] = (kf.d.reshape(self.h, self.w).numpy().copy(),
-                                       var.reshape(self.h, self.w).numpy().copy())
+        if self.keep_lowres_depth:
+            self.lowres_depth[kf.stamp] = (kf.d.reshape(self.h, self.w).numpy().copy(),
+                                           var.reshape(self.h, self.w).numpy().copy())
         img = torch.from_numpy(kf.rgb.astype(np.float32) / 255.0)
         self._emitted.append(Keyframe(
             stamp_ns=kf.stamp, image=img, T_wc=torch.from_numpy(np.linalg.inv(kf.T_cw.numpy())),

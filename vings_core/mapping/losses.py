@@ -198,10 +198,12 @@ def depth_weight(depth: torch.Tensor, inv_depth_var: torch.Tensor, rel_std0: flo
 
 def depth_loss(pred: torch.Tensor, gt: torch.Tensor, weight: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
     """Uncertainty-weighted relative L1 ``mean_valid w |D_hat - D| / D`` (scale-free: indoors and outdoors)."""
-    m = valid & (gt > 0)
+    m = valid & (gt > 0) & torch.isfinite(gt)
     n = m.sum().clamp_min(1)
-    r = (pred - gt).abs() / gt.clamp_min(1e-6)
-    return (r * weight * m.to(r.dtype)).sum() / n
+    # computed under the mask: a masked pixel's inf or NaN must not make the sum NaN (NaN * 0 = NaN)
+    r = torch.where(m, (pred - gt).abs() / torch.where(m, gt, torch.ones_like(gt)).clamp_min(1e-6),
+                    torch.zeros_like(pred))
+    return (r * torch.where(m, weight, torch.zeros_like(weight))).sum() / n
 
 
 def normals_from_depth(depth: torch.Tensor, camera: CameraModel) -> tuple[torch.Tensor, torch.Tensor]:

@@ -396,18 +396,38 @@ class Mapper:
         if self._order and int(kf.stamp_ns) < self._order[-1]:
             raise InputError(f"add_keyframe: keyframe {kf.stamp_ns} is older than the last one "
                              f"({self._order[-1]}); keyframes must arrive in time order")
+        what = f"add_keyframe {kf.stamp_ns}"
         if kf.camera.is_distorted:
-            raise InputError(f"add_keyframe {kf.stamp_ns}: camera has lens distortion; undistort first")
-        if self.camera is None:
-            self.camera = kf.camera
-        elif kf.camera != self.camera:
-            raise InputError(f"add_keyframe {kf.stamp_ns}: camera model differs from the first keyframe's "
-                             f"({kf.camera.width}x{kf.camera.height} vs {self.camera.width}x{self.camera.height})")
-        if kf.image.ndim != 3 or kf.image.shape[2] < 3:
-            raise InputError(f"add_keyframe {kf.stamp_ns}: image must be (H, W, 3), got {tuple(kf.image.shape)}")
+            raise InputError(f"{what}: camera has lens distortion; undistort first")
+        if self.camera is not None and kf.camera != self.camera:
+            c, f = kf.camera, self.camera
+            raise InputError(f"{what}: camera model differs from the first keyframe's ({c.width}x{c.height} "
+                             f"fx {c.fx:g} fy {c.fy:g} cx {c.cx:g} cy {c.cy:g} vs {f.width}x{f.height} "
+                             f"fx {f.fx:g} fy {f.fy:g} cx {f.cx:g} cy {f.cy:g})")
+        img = kf.image
+        if img.ndim != 3 or img.shape[2] < 3:
+            raise InputError(f"{what}: image must be (H, W, 3), got {tuple(img.shape)}")
+        if not img.dtype.is_floating_point:
+            raise InputError(f"{what}: image must be float RGB in [0, 1], got dtype {img.dtype} "
+                             f"(8-bit images: divide by 255)")
+        if not bool(torch.isfinite(img).all()):
+            raise InputError(f"{what}: image has non-finite values")
+        lo, hi = float(img.min()), float(img.max())
+        if lo < -1e-3 or hi > 1.0 + 1e-3:
+            raise InputError(f"{what}: image values must lie in [0, 1], got [{lo:g}, {hi:g}]")
+        H, W = kf.camera.height, kf.camera.width
+        for name in ("depth", "inv_depth_var", "valid"):
+            t = getattr(kf, name)
+            if tuple(t.shape) != (H, W):
+                raise InputError(f"{what}: {name} must have shape ({H}, {W}), got {tuple(t.shape)}")
         _check_pose(kf.T_wc.numpy(), f"keyframe {kf.stamp_ns} T_wc")
         if not bool(torch.isfinite(kf.depth).all()):
-            raise InputError(f"add_keyframe {kf.stamp_ns}: depth has non-finite values (use 0 for invalid)")
+            raise InputError(f"{what}: depth has non-finite values (use 0 for invalid)")
+        var = kf.inv_depth_var
+        if bool(torch.isnan(var).any()) or bool((var < 0).any()):
+            raise InputError(f"{what}: inv_depth_var has NaN or negative values (use inf for unknown)")
+        if self.camera is None:
+            self.camera = kf.camera          # only once the first keyframe is known to be good
 
     def _pose_table(self) -> tuple[np.ndarray, np.ndarray]:
         stamps = np.array(sorted(self._poses), dtype=np.int64)
@@ -487,6 +507,7 @@ class Mapper:
                                         cfg.min_scale_px, cfg.max_scale_px, score_since=self.render_count,
                                         normals_cam=depth_normals(seed_depth, cam), window=cfg.window_size)
             self.gm = GaussianMap.concat([self.gm, new.to(self.device)])
+            n_add = len(rc)                  # at most one per low pixel
         self.counters["added"] += n_add
         self.counters["deleted"] += n_del
         return {"added": n_add, "deleted": n_del, "low_fraction": float(low.float().mean()),
@@ -842,7 +863,8 @@ def _compact(kf: Keyframe) -> dict:
     """A keyframe that left the window, kept for history training: RGB as uint8 (the inputs are 8-bit
     images), depth and inverse-depth variance as float16, validity as bool (~0.6 MB at 376x240)."""
     return {"image": torch.round(kf.image.clamp(0, 1) * 255).to(torch.uint8),
-            "depth": kf.depth.to(torch.float16),
+            # (a depth beyond float16's range stays "far", not inf: inf / inf in the depth loss is NaN)
+            "depth": kf.depth.clamp(max=65504.0).to(torch.float16),
             # float16 overflows above 65504 (the front end sends up to 1e10 for "unknown"): clamp, a
             # standard deviation of 256 1/m is as unusable as infinity
             "inv_depth_var": kf.inv_depth_var.clamp(0, 65504.0).to(torch.float16),
