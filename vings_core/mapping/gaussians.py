@@ -135,6 +135,14 @@ class GaussianMap:
     def nbytes(self) -> int:
         return int(sum(t.element_size() * t.numel() for t in self.tensors().values()))
 
+    def finite_rows(self) -> torch.Tensor:
+        """Bool (N,): Gaussians whose parameters (means, quats, scales, opacity, SH) are all finite."""
+        n = len(self)
+        return (torch.isfinite(self.means).all(1) & torch.isfinite(self.log_scales).all(1)
+                & torch.isfinite(self.quats).all(1)
+                & torch.isfinite(self.opacity_logits.reshape(n, -1)).all(1)
+                & torch.isfinite(self.sh.reshape(n, -1)).all(1))
+
     def index(self, idx: torch.Tensor) -> "GaussianMap":
         """Rows selected by a bool mask or an index tensor (copies)."""
         return GaussianMap(**{k: v[idx] for k, v in self.tensors().items()})

@@ -113,9 +113,10 @@ class Mapper:
         unknown = [s for s in poses if int(s) not in self._poses]
         if unknown:
             raise InputError(f"set_keyframe_poses: unknown keyframe stamps {unknown[:5]}")
+        # every pose checked before any is applied: a bad one leaves the map as it was
+        checked = {s: _check_pose(T, f"set_keyframe_poses[{s}]") for s, T in poses.items()}
         deltas = {}
-        for s, T in poses.items():
-            T = _check_pose(T, f"set_keyframe_poses[{s}]")
+        for s, T in checked.items():
             old = self._poses[int(s)]
             if np.array_equal(T, old):
                 continue
@@ -532,9 +533,7 @@ class Mapper:
         R = T_cw[:3, :3].to(torch.float32)
         t = T_cw[:3, 3].to(torch.float32)
         pc = self.gm.means @ R.T + t
-        finite = torch.isfinite(self.gm.means).all(1) & torch.isfinite(self.gm.log_scales).all(1) & \
-            torch.isfinite(self.gm.quats).all(1) & torch.isfinite(self.gm.opacity_logits.reshape(len(pc), -1)).all(1) & \
-            torch.isfinite(self.gm.sh.reshape(len(pc), -1)).all(1)
+        finite = self.gm.finite_rows()
         pc = torch.where(finite[:, None], pc, torch.zeros((), dtype=pc.dtype))
         z = pc[:, 2]
         front = z > 1e-3
@@ -749,6 +748,12 @@ class Mapper:
     def _refine(self, mode: str, iters: int) -> None:
         cfg = self.cfg
         gm = self.gm
+        ok = gm.finite_rows()
+        if not bool(ok.all()):
+            # a non-finite Gaussian (deleted at the next keyframe) would make its owner's whole
+            # gradient NaN (0 x NaN through the rigid motion) and silently freeze that pose
+            log.debug("pose refinement: %d non-finite Gaussians left out", int((~ok).sum()))
+            gm = gm.index(ok)
         first = self._order[0] if (cfg.refine_fix_first and self._order) else None
         if mode == "multi":
             owners, inv = torch.unique(gm.kf_id, return_inverse=True)
@@ -804,17 +809,19 @@ class Mapper:
             loss.backward()
             g = x.grad.detach().clone()
             # a pose is updated only when the render shows enough of what constrains it
-            # (refine_min_pixels, in pixel weights sum alpha T): the rendered keyframe needs that
-            # much map in view; in multi mode another keyframe needs that much contribution from
-            # its own Gaussians, so one seen through a few pixels at the edge of the view does not
-            # step on their noise
+            # (refine_min_pixels, in pixel weights sum alpha T): in single mode the rendered
+            # keyframe needs that much map in view; in multi mode another keyframe needs that much
+            # contribution from its own Gaussians (one seen through a few pixels at the edge of the
+            # view does not step on their noise), and the rendered keyframe that much from OTHER
+            # keyframes' Gaussians: its own move with its camera, so they cannot constrain it
             contrib = out.contribution.detach().to(torch.float64)
             if mode == "multi":
                 per_owner = torch.zeros(U, dtype=torch.float64).index_add_(0, inv, contrib)
                 vis_owner = per_owner >= cfg.refine_min_pixels
+                vis_owner[r] = float(contrib.sum() - per_owner[r]) >= cfg.refine_min_pixels
             else:
                 vis_owner = torch.zeros(U, dtype=torch.bool)
-            vis_owner[r] = float(contrib.sum()) >= cfg.refine_min_pixels
+                vis_owner[r] = float(contrib.sum()) >= cfg.refine_min_pixels
             upd = vis_owner & ~fixed & torch.isfinite(g).all(1)
             if not upd.any():
                 continue
