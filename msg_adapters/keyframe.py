@@ -102,6 +102,10 @@ def msgs_to_keyframe(image: Image, depth: Image, inv_depth_var: Image, pose: Pos
     if img.ndim == 2:
         img = np.repeat(img[..., None], 3, axis=2)
     _, T = pose_stamped_to_matrix(pose, PART_TOPICS["pose"])
+    if bool((var < 0).any()):
+        raise InputError(f"{PART_TOPICS['inv_depth_var']}: {int((var < 0).sum())} negative variances "
+                         f"(a variance is >= 0; use inf or NaN for unknown)")
+    var = np.where(np.isnan(var), np.float32(np.inf), var)    # NaN = unknown, the mapper's inf
     valid = np.isfinite(d) & (d > 0)
     d = np.where(valid, d, np.float32(0.0))
     return Keyframe(stamp_ns=s, image=torch.from_numpy(uint8_to_rgb_float(img)),

@@ -324,6 +324,13 @@ def test_constant_velocity_prediction_follows_the_time_stamps(box_sequence):
     normal = max(e for (a, b), e in errs.items() if b - a == 1 and a != 17)
     # across the gap and right after it the error stays at the level of ordinary frames
     assert errs[(14, 17)] < 3 * normal + 1e-3 and errs[(17, 18)] < 3 * normal + 1e-3
+    # a very long gap: the extrapolation is held at MAX_VELOCITY_RATIO intervals
+    from vings_core.frontend.tracker import MAX_VELOCITY_RATIO
+    last_s, T_last = fe._last
+    span = last_s - fe._prev[0]
+    far = fe._predict(last_s + 1000 * span).numpy()
+    cap = fe._predict(last_s + int(MAX_VELOCITY_RATIO * span)).numpy()
+    assert np.allclose(far, cap, atol=1e-9)
 
 
 def test_scale_correction_rescales_depth_variances_too(box_sequence):

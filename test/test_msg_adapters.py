@@ -548,3 +548,19 @@ def test_keyframe_parts_must_agree():
     small = kfa.keyframe_to_msgs(_keyframe(stamp=1, w=20, h=10))
     with pytest.raises(InputError, match=r"/vings/keyframe/depth.*20x10.*40x30"):
         ma.msgs_to_keyframe(a.image, small.depth, a.inv_depth_var, a.pose, a.camera_info)
+
+
+def test_keyframe_variance_nan_means_unknown_and_negative_is_refused():
+    """A third-party publisher's NaN variance ("unknown") reaches the mapper as inf (which its input
+    check accepts); a negative variance is refused here, naming the topic."""
+    from dataclasses import replace
+    kf = _keyframe()
+    var = kf.inv_depth_var.clone()
+    var[0, :5] = float("nan")
+    parts = {k: wire(m) for k, m in kfa.keyframe_to_msgs(replace(kf, inv_depth_var=var)).as_dict().items()}
+    back = ma.msgs_to_keyframe(**parts)
+    assert torch.isinf(back.inv_depth_var[0, :5]).all() and not torch.isnan(back.inv_depth_var).any()
+    var[0, :5] = -1.0
+    parts = {k: wire(m) for k, m in kfa.keyframe_to_msgs(replace(kf, inv_depth_var=var)).as_dict().items()}
+    with pytest.raises(InputError, match="/vings/keyframe/inv_depth_var.*negative"):
+        ma.msgs_to_keyframe(**parts)

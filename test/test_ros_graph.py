@@ -515,3 +515,18 @@ def test_vings_run_ends_with_front_end_and_mapper_agreeing(tmp_path):
     assert len(kf) >= 2 and m["frames_tracked"] >= 12
     assert r.fe_link.stats["applied"] > 0, "no refinement was exchanged"
     assert max(np.abs(P - r.frontend.pose(s)).max() for s, P in kf.items()) < 1e-9
+
+
+def test_pose_written_before_the_keyframe_is_sent_reaches_the_mapper(linked):
+    """outgoing() runs before keyframe_sent() for a keyframe whose pose was written after its packet
+    was made: the write is not lost (the link compares every newly sent keyframe once)."""
+    fe, mp, fl, ml = linked
+    T3 = _se3([2.0, 0, 0], [0, 0.2, 0])
+    kf3 = _kf(3, T3)                              # the packet, made at T3
+    fe.poses[3] = _se3([2.1, 0, 0], [0, 0.2, 0])  # the front end moves it before the link knows it
+    assert fl.outgoing(fe) == {}                  # not sent yet: nothing to compare
+    fl.keyframe_sent(kf3)
+    mp.poses[3] = T3.copy()
+    ml.keyframe_added(kf3)
+    moved = fl.outgoing(fe)
+    assert list(moved) == [3] and np.allclose(moved[3], fe.pose(3))

@@ -342,6 +342,9 @@ class FrontendPoseLink:
 
     def keyframe_sent(self, kf: Keyframe) -> None:
         self.sent[int(kf.stamp_ns)] = kf.T_wc.detach().cpu().numpy().astype(np.float64).copy()
+        # compared at the next outgoing() whatever the write log says: a pose written after the
+        # packet was made, but before this call, would otherwise never be sent
+        self._recheck.add(int(kf.stamp_ns))
 
     def outgoing(self, frontend) -> PoseUpdates:
         """Keyframe poses to send to the mapper (absolute ``T_wc``), with the batch ``ack``. Only

@@ -164,6 +164,12 @@ class MapperNode(Node):
         self._busy = True
         try:
             self._map(kf)
+        except InputError as e:
+            if int(kf.stamp_ns) in self.mapper.keyframe_poses():
+                raise            # the keyframe was taken: not a refusal of its content
+            # refused before anything changed (bad image range, shapes, pose): drop it, keep mapping
+            self.bad_parts += 1
+            self.get_logger().warning(f"dropped keyframe {kf.stamp_ns}: {e}")
         finally:
             self._busy = False
 

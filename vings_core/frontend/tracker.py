@@ -84,6 +84,8 @@ def orthonormalize(T: torch.Tensor) -> torch.Tensor:
     return out
 STATES = ("waiting", "tracking", "lost")
 MAX_PENDING = 400          # waiting frames re-posed at initialisation (most recent)
+#: longest extrapolation of the constant-velocity prior, in units of the last frame interval
+MAX_VELOCITY_RATIO = 8.0
 
 
 @dataclass
@@ -586,6 +588,8 @@ class Frontend:
         delta = self._last[1] @ pose_inverse(self._prev[1])
         span = self._last[0] - self._prev[0]
         ratio = (int(stamp_ns) - self._last[0]) / span if span > 0 else 1.0
+        # past a few intervals the motion model says little and its error is multiplied: hold it
+        ratio = min(ratio, MAX_VELOCITY_RATIO)
         if ratio != 1.0:
             delta = se3_exp(ratio * se3_log(delta))
         return orthonormalize(delta @ self._last[1])
