@@ -248,3 +248,6 @@ def test_launch_never_overwrites_a_recording(tmp_path):
     with pytest.raises(ConfigError, match="recordings are never overwritten"):
         Launcher(LaunchOptions(record=str(rec)))
     assert rec.read_bytes() == b"earlier recording"
+    # a recording that could not be written is refused before any node starts
+    with pytest.raises(ConfigError, match="--record .*cannot write"):
+        Launcher(LaunchOptions(record="/proc/vings/out.mcap"))

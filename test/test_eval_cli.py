@@ -94,6 +94,10 @@ def test_cli_errors(capsys, trajs):
     assert "needs ESTIMATE to be a run output folder" in run_err(
         capsys, ["eval", str(d / "est.tum"), "--gt", str(d / "gt.tum"), "--write-metrics"])
     assert "has no trajectory.tum" in run_err(capsys, ["eval", str(d), "--gt", str(d / "gt.tum")])
+    (d / "bin.tum").write_bytes(b"# header\n\x7fELF\xf0\x9f\xff binary")
+    assert "bin.tum: not a text trajectory file" in run_err(
+        capsys, ["eval", str(d / "bin.tum"), "--gt", str(d / "gt.tum")])
+    assert "cannot read" in run_err(capsys, ["eval", str(d / "est.tum"), "--gt", "/proc/self/mem"])
 
 
 def test_cli_body_ground_truth_with_calib(capsys, tmp_path):
@@ -167,6 +171,13 @@ def test_cli_images(capsys, tmp_path):
     assert "no images with the same name" in run_err(capsys, ["eval", "--images", str(a_dir), str(tmp_path / "c")])
     cv2.imwrite(str(tmp_path / "c" / "000.png"), img[:32])
     assert "has shape" in run_err(capsys, ["eval", "--images", str(a_dir), str(tmp_path / "c")])
+    # two images of the same name: which one is compared must not depend on the sort order
+    cv2.imwrite(str(b_dir / "000.bmp"), img[..., ::-1])
+    assert "000.bmp and 000.png share the name" in run_err(capsys, ["eval", "--images", str(a_dir), str(b_dir)])
+    # a file that is not a weights archive: one line, without torch's weights_only advice
+    err = run_err(capsys, ["eval", "--images", str(a_dir), str(a_dir), "--lpips-weights",
+                           str(a_dir / "000.png")])
+    assert "not a readable LPIPS weights file" in err and "weights_only" not in err
 
 
 def test_cli_dataset_ground_truth_kitti(capsys, tmp_path, shared_data):
@@ -183,3 +194,11 @@ def test_cli_dataset_ground_truth_kitti(capsys, tmp_path, shared_data):
     assert r["gt_source"] == src.kind and r["matched_poses"] == len(gt)
     assert r["ate_sim3_m"] < 1e-6 and r["sim3_scale"] == pytest.approx(1 / 0.3, rel=1e-6)
     assert r["rpe"]["lengths_m"] == [5.0, 10.0, 25.0]  # ~90 m drive
+
+
+@pytest.mark.parametrize("argv", [["info", ".", "--width", "100000"],
+                                  ["sim", "--out", "x", "--height", "90000"]])
+def test_absurd_image_sizes_are_refused_by_the_parser(capsys, argv):
+    with pytest.raises(SystemExit) as e:
+        main(argv)
+    assert e.value.code == 2 and "must be <= 8192" in capsys.readouterr().err

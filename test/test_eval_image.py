@@ -175,7 +175,7 @@ def test_lpips_bad_files(tmp_path):
     with pytest.raises(InputError, match="lin0.model.1.weight has shape"):
         load_lpips(tmp_path / "shape.pth")
     (tmp_path / "junk.pth").write_bytes(b"not a torch file")
-    with pytest.raises(InputError, match="cannot read LPIPS weights"):
+    with pytest.raises(InputError, match="not a readable LPIPS weights file"):
         load_lpips(tmp_path / "junk.pth")
     torch.save({"foo": torch.zeros(3)}, tmp_path / "other.pth")
     with pytest.raises(InputError, match="no LPIPS backbone"):

@@ -102,7 +102,14 @@ def test_bad_calibration_files(tmp_path, text, match):
     p.write_text(text)
     with pytest.raises(InputError, match=match) as e:
         load_calibration_yaml(p)
-    assert "bad.yaml" in str(e.value)
+    assert "bad.yaml" in str(e.value) and "\n" not in str(e.value)   # one line, no YAML excerpt
+
+
+def test_binary_calibration_file_is_an_input_error(tmp_path):
+    p = tmp_path / "bin.yaml"
+    p.write_bytes(b"\x7fELF\xff\xfe binary")
+    with pytest.raises(InputError, match="bin.yaml: not a text calibration file"):
+        load_calibration_yaml(p)
 
 
 def test_missing_file(tmp_path):

@@ -433,6 +433,11 @@ def test_topics_and_options_validation():
                     ({"start_s": -2.0}, "--start"), ({"imu_lead_s": -1.0}, "--imu-lead")):
         with pytest.raises(ConfigError, match=pat):
             ReplayOptions(**kw).validate()
+    # the publish log is checked before the replay (a folder, a place nothing can be written)
+    with pytest.raises(ConfigError, match="--publish-log .*is a folder"):
+        ReplayOptions(publish_log="/tmp").validate()
+    with pytest.raises(ConfigError, match="--publish-log .*cannot write"):
+        ReplayOptions(publish_log="/proc/vings/log.csv").validate()
     o = ReplayOptions(topics={"image": "/cam/img"})
     o.validate()
     assert o.topics["image"] == "/cam/img" and o.topics["imu"] == T.IMU_TOPIC
@@ -492,6 +497,7 @@ def test_cli_reports_bad_arguments_in_one_line(tmp_path, capsys, recording):
     from vings_ros.cli import main
     assert main(["replay", str(recording[0]), "--start", "5", "--no-wait"]) == 2
     assert "no frames in the selected window" in capsys.readouterr().err
+    (tmp_path / "afile").write_text("a file where the log's folder would be")
     assert main(["replay", str(tmp_path / "nope"), "--no-wait"]) == 2
     err = capsys.readouterr().err
     assert "nope" in err and len(err.strip().splitlines()) == 1 and "Traceback" not in err
@@ -506,7 +512,7 @@ def test_cli_reports_bad_arguments_in_one_line(tmp_path, capsys, recording):
                       (["--duration", "inf"], "--duration must be a finite"),
                       (["--imu-lead", "inf"], "--imu-lead must be a finite"),
                       (["--startup-timeout", "nan"], "--startup-timeout >= 0"),
-                      (["--publish-log", str(tmp_path / "nofolder" / "x.csv")], "--publish-log")):
+                      (["--publish-log", str(tmp_path / "afile" / "x.csv")], "--publish-log")):
         assert main(["replay", str(recording[0]), "--no-wait", *args]) == 2, args
         err = capsys.readouterr().err
         assert msg in err and "Traceback" not in err, (args, err)

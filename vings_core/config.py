@@ -22,6 +22,7 @@ from typing import Any, Type, TypeVar
 import yaml
 
 from .errors import ConfigError
+from .util import describe_yaml_error
 
 C = TypeVar("C")
 
@@ -48,10 +49,7 @@ def read_params_file(path: str | os.PathLike, sections: tuple = KNOWN_SECTIONS) 
     try:
         doc = yaml.safe_load(text) or {}
     except yaml.YAMLError as e:
-        mark = getattr(e, "problem_mark", None)
-        at = f" at line {mark.line + 1}, column {mark.column + 1}" if mark is not None else ""
-        why = getattr(e, "problem", None) or str(e).splitlines()[0]
-        raise ConfigError(f"{path}: not valid YAML{at}: {why}") from None
+        raise ConfigError(f"{path}: {describe_yaml_error(e)}") from None
     if not isinstance(doc, dict):
         raise ConfigError(f"{path}: top level must be a mapping of node names")
     merged: dict = {}

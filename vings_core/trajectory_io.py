@@ -70,8 +70,14 @@ def read_tum(path: str | os.PathLike) -> Trajectory:
     path = Path(path)
     if not path.is_file():
         raise InputError(f"{path}: trajectory file not found")
+    try:
+        text = path.read_text()
+    except UnicodeDecodeError as e:
+        raise InputError(f"{path}: not a text trajectory file (byte {e.start} is not UTF-8)") from None
+    except OSError as e:
+        raise InputError(f"{path}: cannot read ({e.strerror or e})") from None
     stamps, poses = [], []
-    for ln, line in enumerate(path.read_text().splitlines(), 1):
+    for ln, line in enumerate(text.splitlines(), 1):
         line = line.strip()
         if not line or line.startswith("#"):
             continue

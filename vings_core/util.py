@@ -52,6 +52,37 @@ def atomic_write(path: str | os.PathLike, write: Callable[[str], None]) -> None:
         raise
 
 
+def describe_yaml_error(e: Exception) -> str:
+    """One line for a PyYAML error: where (line, column) and what, without its multi-line excerpt."""
+    mark = getattr(e, "problem_mark", None)
+    at = f" at line {mark.line + 1}, column {mark.column + 1}" if mark is not None else ""
+    why = getattr(e, "problem", None) or (str(e).splitlines() or [type(e).__name__])[0]
+    return f"not valid YAML{at}: {why}"
+
+
+def probe_writable_dir(d: str | os.PathLike) -> None:
+    """Create folder ``d`` if needed and write-test it (a temporary file made and removed);
+    raises ``OSError``. ``os.access`` is not enough: it says yes to root where a write fails."""
+    d = Path(d)
+    d.mkdir(parents=True, exist_ok=True)
+    fd, probe = tempfile.mkstemp(prefix=".write-test.", dir=d)
+    os.close(fd)
+    os.unlink(probe)
+
+
+def check_output_file(path: str | os.PathLike, what: str) -> Path:
+    """Before a long job: ``path`` can be written as a file (not a folder; its folder is created
+    and write-tested). Raises :class:`VingsError` naming ``what`` (e.g. the option)."""
+    path = Path(path).expanduser().absolute()
+    if path.is_dir():
+        raise VingsError(f"{what} {path}: is a folder; give a file name")
+    try:
+        probe_writable_dir(path.parent)
+    except OSError as e:
+        raise VingsError(f"{what} {path}: cannot write to {path.parent} ({e.strerror or e})") from None
+    return path
+
+
 def atomic_write_text(path: str | os.PathLike, text: str) -> None:
     def _w(tmp: str) -> None:
         with open(tmp, "w") as f:

@@ -18,7 +18,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Optional, TextIO
 
-from vings_core.errors import ConfigError
+from vings_core.errors import ConfigError, VingsError
+from vings_core.util import check_output_file
 
 from .ros_env import cleanup_fastdds_shm, ros_environment, shm_snapshot
 
@@ -71,6 +72,11 @@ class Launcher:
         if opt.record and Path(opt.record).exists():
             raise ConfigError(f"--record {opt.record}: the file exists; recordings are never "
                               f"overwritten, choose a new name")
+        if opt.record:      # before any node starts, not when the recorder dies
+            try:
+                check_output_file(opt.record, "--record")
+            except VingsError as e:
+                raise ConfigError(str(e)) from None
         if opt.checkpoint:
             opt.extra_params.setdefault("ros.checkpoint_path", str(Path(opt.checkpoint).resolve()))
         self.env = ros_environment(opt.domain_id, log_dir=opt.log_dir)

@@ -265,7 +265,7 @@ def run_node(make_node: Callable[[], Any], args: Optional[list[str]] = None) -> 
             err = node.error
             code = 2 if isinstance(err, VingsError) else 1
             print(f"{node.get_name()}: error: {err}", file=sys.stderr)
-    except (VingsError, ValueError) as e:
+    except (VingsError, ValueError, OSError) as e:   # bad parameters, an output it cannot write
         print(f"vings node: error: {e}", file=sys.stderr)
         code = 2
     except ExternalShutdownException:

@@ -37,15 +37,14 @@ from __future__ import annotations
 
 import logging
 import math
-import os
 import re
 import sys
 import time
 from dataclasses import asdict, dataclass, field
-from pathlib import Path
 from typing import Callable, Optional, TextIO
 
 from vings_core.errors import ConfigError, VingsError
+from vings_core.util import check_output_file
 from vings_core.types import Frame, ImuSample
 
 from msg_adapters import topics as T
@@ -114,10 +113,10 @@ class ReplayOptions:
                                   f"message types differ); give each its own topic")
             seen[v] = k
         if self.publish_log:    # found before the replay, not after it
-            parent = Path(self.publish_log).expanduser().absolute().parent
-            if not parent.is_dir() or not os.access(parent, os.W_OK):
-                raise ConfigError(f"--publish-log {self.publish_log}: folder {parent} does not exist "
-                                  f"or is not writable")
+            try:
+                check_output_file(self.publish_log, "--publish-log")
+            except VingsError as e:
+                raise ConfigError(str(e)) from None
         self.topics = full
 
 
@@ -481,8 +480,11 @@ class Replayer:
             st.ack_wait_max_ms = 1e3 * max(self._ack_waits)
         if self.opt.publish_log:
             from vings_core.util import atomic_write_text
-            atomic_write_text(self.opt.publish_log, "# stamp_ns,publish_wall_ns\n" + "".join(
-                f"{s},{w}\n" for s, w in self._pub_log))
+            try:
+                atomic_write_text(self.opt.publish_log, "# stamp_ns,publish_wall_ns\n" + "".join(
+                    f"{s},{w}\n" for s, w in self._pub_log))
+            except VingsError as e:   # the replay itself is done: report, keep the statistics
+                self._print(f"replay: warning: publish log not written: {e}")
         return st
 
 

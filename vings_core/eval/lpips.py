@@ -193,7 +193,10 @@ def load_lpips(path: Union[str, os.PathLike], net: Optional[str] = None) -> LPIP
     try:
         sd = torch.load(str(path), map_location="cpu", weights_only=True)
     except Exception as e:  # torch raises many types for corrupt files
-        raise InputError(f"{path}: cannot read LPIPS weights ({type(e).__name__}: {e})") from None
+        first = (str(e).strip().splitlines() or [""])[0]     # torch's message runs over many lines
+        if "Weights only load failed" in first:   # its advice (weights_only=False) is not for us
+            first = "not a torch.save archive of tensors"
+        raise InputError(f"{path}: not a readable LPIPS weights file ({type(e).__name__}: {first})") from None
     if isinstance(sd, dict) and "state_dict" in sd and isinstance(sd["state_dict"], dict):
         sd = sd["state_dict"]
     if not isinstance(sd, dict) or not all(isinstance(v, torch.Tensor) for v in sd.values()):

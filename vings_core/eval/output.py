@@ -18,7 +18,6 @@ import os
 import re
 import resource
 import sys
-import tempfile
 from pathlib import Path
 from typing import Any, Union
 
@@ -27,7 +26,7 @@ import numpy as np
 from ..errors import InputError
 from ..trajectory_io import write_tum
 from ..types import Trajectory
-from ..util import atomic_write_bytes, atomic_write_text, log
+from ..util import atomic_write_bytes, atomic_write_text, log, probe_writable_dir
 
 TRAJECTORY_FILE = "trajectory.tum"
 KEYFRAMES_FILE = "keyframes.tum"
@@ -151,11 +150,8 @@ class RunOutput:
         until then this run writes only ``*.partial.*`` files (an interrupted earlier run's
         partial files are removed here, so they cannot pass for this run's)."""
         try:
-            self.renders_dir.mkdir(parents=True, exist_ok=True)
             for d in (self.out_dir, self.renders_dir):
-                fd, probe = tempfile.mkstemp(prefix=".write-test.", dir=d)
-                os.close(fd)
-                os.unlink(probe)
+                probe_writable_dir(d)
         except OSError as e:
             raise InputError(f"{self.out_dir}: cannot write to the output folder "
                              f"({e.strerror or e})") from None

@@ -33,7 +33,7 @@ import yaml
 
 from ..errors import InputError
 from ..types import Calibration, CameraModel
-from ..util import atomic_write_text
+from ..util import atomic_write_text, describe_yaml_error
 
 # Published intrinsics of the TUM RGB-D Kinects (TUM RGB-D benchmark web page "File Formats ->
 # Intrinsic Camera Calibration of the Kinect"; ORB-SLAM2 ships the same in TUM1/2/3.yaml). 640x480.
@@ -169,13 +169,18 @@ def read_yaml_doc(path: str | os.PathLike) -> dict:
     path = Path(path)
     if not path.is_file():
         raise InputError(f"{path}: calibration file not found")
-    text = path.read_text()
+    try:
+        text = path.read_text()
+    except UnicodeDecodeError as e:
+        raise InputError(f"{path}: not a text calibration file (byte {e.start} is not UTF-8)") from None
+    except OSError as e:
+        raise InputError(f"{path}: cannot read ({e.strerror or e})") from None
     text = re.sub(r"^%YAML[: ]?1\.\d.*$", "", text, flags=re.M)
     text = text.replace("!!opencv-matrix", "")
     try:
         doc = yaml.safe_load(text)
     except yaml.YAMLError as e:
-        raise InputError(f"{path}: not valid YAML: {e}") from None
+        raise InputError(f"{path}: {describe_yaml_error(e)}") from None
     if not isinstance(doc, dict):
         raise InputError(f"{path}: expected a YAML mapping at the top level")
     return doc

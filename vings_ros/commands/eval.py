@@ -192,7 +192,14 @@ def eval_images(dir_a: str, dir_b: str, lpips_weights: Optional[str] = None) -> 
             raise InputError(f"{d}: image folder not found")
 
     def listing(d: Path) -> dict:
-        return {f.stem: f for f in sorted(d.iterdir()) if f.suffix.lower() in IMAGE_SUFFIXES}
+        out: dict = {}
+        for f in sorted(d.iterdir()):
+            if f.suffix.lower() in IMAGE_SUFFIXES:
+                if f.stem in out:     # which one would be compared must not depend on the sort order
+                    raise InputError(f"{d}: {out[f.stem].name} and {f.name} share the name "
+                                     f"{f.stem!r}; keep one image per name")
+                out[f.stem] = f
+        return out
 
     la, lb = listing(a), listing(b)
     common = sorted(set(la) & set(lb))

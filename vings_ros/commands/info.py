@@ -4,7 +4,7 @@ from __future__ import annotations
 import argparse
 import json
 
-from .argtypes import int_at_least
+from .argtypes import image_side, int_at_least
 
 
 def add_source_arguments(p: argparse.ArgumentParser) -> None:
@@ -16,8 +16,8 @@ def add_source_arguments(p: argparse.ArgumentParser) -> None:
     g.add_argument("--gt-topic", help="bag ground-truth pose topic (default: /ground_truth/pose if present)")
     g.add_argument("--calib", metavar="FILE", help="calibration YAML overriding the recording's "
                    "(EuRoC/Kalibr/ROS camera_info/ORB-SLAM/VINGS layouts; or tum-fr1|tum-fr2|tum-fr3)")
-    g.add_argument("--width", type=int, help="working width in pixels (default: native)")
-    g.add_argument("--height", type=int, help="working height in pixels (default: native)")
+    g.add_argument("--width", type=image_side, help="working width in pixels (default: native)")
+    g.add_argument("--height", type=image_side, help="working height in pixels (default: native)")
     g.add_argument("--no-undistort", action="store_true", help="keep lens distortion")
     g.add_argument("--max-frames", type=int_at_least(1), help="use at most this many frames")
 

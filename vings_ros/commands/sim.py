@@ -4,7 +4,7 @@ from __future__ import annotations
 import argparse
 import json
 
-from .argtypes import int_at_least
+from .argtypes import image_side, int_at_least
 
 
 def register(subparsers) -> None:
@@ -26,8 +26,8 @@ def register(subparsers) -> None:
                    help="street: closed route that ends exactly at its start")
     p.add_argument("--dynamic", action="store_true", help="add moving objects (and their masks)")
     p.add_argument("--fps", type=float, default=20.0, help="camera rate (Hz, divides 200)")
-    p.add_argument("--width", type=int, default=376, help="image width (px)")
-    p.add_argument("--height", type=int, default=240, help="image height (px)")
+    p.add_argument("--width", type=image_side, default=376, help="image width (px)")
+    p.add_argument("--height", type=image_side, default=240, help="image height (px)")
     p.add_argument("--seed", type=int_at_least(0), default=0, help="seed of scene, motion and IMU noise (>= 0)")
     p.add_argument("--no-noise", action="store_true", help="exact IMU: no noise, zero biases")
     p.add_argument("--no-mcap", action="store_true", help="skip the ROS 2 MCAP")
