@@ -225,7 +225,7 @@ def exp_room(a, cfg: MapperConfig) -> tuple[dict, Mapper, SimSequence]:
 
 
 def exp_score(a, cfg: MapperConfig, base: dict | None) -> dict:
-    seq = SimSequence("room", a.score_frames, a.width, a.height)
+    seq = SimSequence(a.score_scene, a.score_frames, a.width, a.height)
     kf, novel = split_views(seq.n, a.kf_every, a.max_novel)
     res = {}
     variants = [("off", replace(cfg, score_manager=False))]
@@ -253,7 +253,7 @@ def exp_score(a, cfg: MapperConfig, base: dict | None) -> dict:
         if name != "off":
             r["reduction_pct"] = 100.0 * (1 - r["num_gaussians"] / max(1, off["num_gaussians"]))
             r["psnr_loss_db"] = off["psnr_keyframes_db"] - r["psnr_keyframes_db"]
-    return {"frames": seq.n, "keyframes": len(kf), "variants": res}
+    return {"scene": a.score_scene, "frames": seq.n, "keyframes": len(kf), "variants": res}
 
 
 def _noisy_poses(seq: SimSequence, kf_idx, trans_m: float, rot_deg: float, seed: int) -> dict:
@@ -550,6 +550,8 @@ def main(argv=None) -> int:
     p.add_argument("--max-novel", type=int, default=40)
     p.add_argument("--room-frames", type=int, default=200)
     p.add_argument("--score-frames", type=int, default=100)
+    p.add_argument("--score-scene", choices=("room", "street"), default="room",
+                   help="simulator scene of the score-manager ablation")
     p.add_argument("--sc-storage", default="1,1.6,2")
     p.add_argument("--sc-storage-sum", default="4,6",
                    help="sc_storage values run with S_C summed over the window (sc_storage_per_view=False)")

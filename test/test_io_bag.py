@@ -154,11 +154,13 @@ def test_out_of_order_and_duplicate_stamps(tmp_path):
 
 
 def test_zero_header_stamps_fall_back_to_bag_time(tmp_path):
-    p = make_bag(tmp_path / "z", BagSpec(zero_header=True), "mcap")
+    p = make_bag(tmp_path / "z", BagSpec(zero_header=True, gt_topic="/ground_truth/pose"), "mcap")
     src = open_source(p)
     assert src.frame_stamps().tolist() == [T0 + i * 50_000_000 for i in range(4)]
     assert any("image(s) with a zero header stamp" in w for w in src.warnings)
     assert any("/imu0: 40 IMU sample(s) with a zero header stamp" in w for w in src.warnings)
+    assert any("/ground_truth/pose: " in w and "ground-truth pose(s) with a zero header stamp" in w
+               for w in src.warnings)
     assert len(list(src.frames())) == 4
 
 
@@ -167,6 +169,19 @@ def test_binned_camera_info_gives_the_image_intrinsics(tmp_path):
     p = make_bag(tmp_path / "b", BagSpec(info_scale=2, imu_topics=()), "mcap")
     c = open_source(p).calibration.camera
     assert (c.width, c.height, c.fx, c.fy, c.cx, c.cy) == (W, H, FX, FY, CX, CY)
+
+
+def test_rectified_image_topic_takes_the_projection_matrix(tmp_path):
+    """``image_rect``: the images are already rectified, so the camera is P without distortion; the
+    CameraInfo's K and D (the raw sensor) would undistort them a second time."""
+    D = (-0.3, 0.1, 0.0, 0.0, 0.0)
+    raw = open_source(make_bag(tmp_path / "raw", BagSpec(D=D, imu_topics=()), "mcap"))
+    assert raw.raw_camera.distortion_model == "radtan"
+    rect = open_source(make_bag(tmp_path / "rect", BagSpec(D=D, imu_topics=(), image_topics={
+        "/cam0/image_rect": "mono8"}), "mcap"))
+    c = rect.raw_camera
+    assert c.distortion_model == "none" and (c.fx, c.fy, c.cx, c.cy) == (FX, FY, CX, CY)
+    assert rect.calibration.camera == c            # no undistortion, no change of intrinsics
 
 
 def test_unusable_default_ground_truth_topic_is_ignored_with_a_warning(tmp_path):

@@ -70,6 +70,11 @@ def test_resize_only_scales_intrinsics_and_nearest_keeps_labels():
     assert m.dtype == bool and m.shape == (240, 320) and m[75, 175] and not m[10, 10]
     depth = np.where(mask, 2.5, 1.0).astype(np.float32)
     assert set(np.unique(und(depth, nearest=True)).tolist()) == {1.0, 2.5}
+    # nearest sampling follows the pixel centres (output j <- source 2 j + 0.5, a tie between
+    # 2 j and 2 j + 1), not floor(2 j): a one-pixel stripe at odd source columns is kept
+    stripes = np.zeros((480, 640), np.uint8)
+    stripes[:, 1::2] = 1
+    assert und(stripes, nearest=True).min() == 1
     same = Undistorter(cam)
     img = np.ones((480, 640), np.uint8)
     assert same.is_identity and same(img) is img

@@ -213,7 +213,8 @@ def test_camera_info_binning_roi_and_tolerated_variants():
     msg.roi.x_offset, msg.roi.y_offset, msg.roi.width, msg.roi.height = 100, 40, 400, 300
     b = ma.camera_info_to_camera(wire(msg))
     assert (b.width, b.height) == (200, 150)
-    assert (b.fx, b.fy, b.cx, b.cy) == (200.0, 205.0, 135.0, 105.0)
+    # pixel centres at integer coordinates: cx' = (cx - x0 + 0.5) / 2 - 0.5
+    assert (b.fx, b.fy, b.cx, b.cy) == (200.0, 205.0, 134.75, 104.75)
     msg = ma.camera_to_camera_info(cam, 0, "cam")
     msg.distortion_model = "rational_polynomial"
     msg.d = [0.1, 0.01, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0]

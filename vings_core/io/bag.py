@@ -80,15 +80,27 @@ def _field(msg, *names):
     raise AttributeError(names[0])
 
 
-def camera_from_camera_info(msg, where: str) -> Optional[CameraModel]:
+def is_rectified_topic(topic: Optional[str]) -> bool:
+    """ROS naming: ``image_rect`` / ``image_rect_color`` (image_proc) carry rectified images."""
+    return bool(topic) and str(topic).rstrip("/").split("/")[-1].startswith("image_rect")
+
+
+def camera_from_camera_info(msg, where: str, rectified: bool = False) -> Optional[CameraModel]:
     """A CameraInfo message (ROS 1 or 2 field names) -> raw CameraModel of the recorded image
     (region of interest and binning applied, :func:`camera_info_intrinsics`), or None if
-    uncalibrated (K = 0)."""
+    uncalibrated (K = 0). ``rectified``: the image topic carries rectified images (``image_rect``);
+    its camera is then the projection matrix ``P[:3, :3]`` without distortion (ROS convention:
+    ``K``/``D`` describe the raw sensor, which would undistort the images a second time)."""
     K = np.asarray(_field(msg, "k", "K"), dtype=np.float64).reshape(3, 3)
     D = np.asarray(_field(msg, "d", "D"), dtype=np.float64).reshape(-1)
+    if rectified:
+        P = np.asarray(_field(msg, "p", "P"), dtype=np.float64).reshape(3, 4)
+        if P[0, 0] > 0 and P[1, 1] > 0:
+            K, D = P[:3, :3].copy(), np.zeros(0)
+            K[0, 1] = 0.0 if abs(K[0, 1]) < 1e-12 else K[0, 1]
     if K[0, 0] <= 0 or K[1, 1] <= 0:
         return None
-    name = msg.distortion_model or ("plumb_bob" if np.any(D) else "none")
+    name = "none" if rectified else (msg.distortion_model or ("plumb_bob" if np.any(D) else "none"))
     model = distortion_model_name(name, f"{where}: distortion_model")
     if model == "equidistant":
         D = D[:4]
@@ -243,6 +255,7 @@ class BagSource(LoaderSource):
         cam_msg = None
         gt_st: list[int] = []
         gt_T: list[np.ndarray] = []
+        gt_zero = 0
         for conn, t, raw in (r.messages(connections=conns) if conns else ()):
             topic = conn.topic
             if topic == self.image_topic:
@@ -267,11 +280,15 @@ class BagSource(LoaderSource):
             elif topic == self.camera_info_topic:
                 if cam_msg is None:
                     m = self._deser(r, raw, conn, f"{self.path}:{topic}")
-                    if camera_from_camera_info(m, f"{self.path}:{topic}") is not None:
+                    if camera_from_camera_info(m, f"{self.path}:{topic}",
+                                               is_rectified_topic(self.image_topic)) is not None:
                         cam_msg = m
             elif topic == self.gt_topic:
                 m = self._deser(r, raw, conn, f"{self.path}:{topic}")
-                gt_st.append(_stamp_of(m, f"{self.path}:{topic}") or int(t))
+                s = _stamp_of(m, f"{self.path}:{topic}")
+                if s == 0:
+                    s, gt_zero = int(t), gt_zero + 1
+                gt_st.append(s)
                 gt_T.append(pose_of(m, conn.msgtype))
 
         if img_zero:
@@ -280,6 +297,9 @@ class BagSource(LoaderSource):
         if imu_zero:
             self._warn(f"{self.path}:{self.imu_topic}: {imu_zero} IMU sample(s) with a zero header "
                        f"stamp; used the bag receive time")
+        if gt_zero:
+            self._warn(f"{self.path}:{self.gt_topic}: {gt_zero} ground-truth pose(s) with a zero "
+                       f"header stamp; used the bag receive time")
         # frames: sorted, de-duplicated, limited
         st = np.asarray(img_st, dtype=np.int64)
         idx = order_stamps(st, f"{self.path}:{self.image_topic}", self._warn)
@@ -323,7 +343,8 @@ class BagSource(LoaderSource):
             self.calib_source = str(yaml_path)
         camera = parts.camera
         if camera is None and cam_msg is not None:
-            camera = camera_from_camera_info(cam_msg, f"{self.path}:{self.camera_info_topic}")
+            camera = camera_from_camera_info(cam_msg, f"{self.path}:{self.camera_info_topic}",
+                                             is_rectified_topic(self.image_topic))
             self.calib_source = f"{self.camera_info_topic} (CameraInfo)"
             if camera is not None and (camera.width == 0 or camera.height == 0) and first_img is not None:
                 camera = None

@@ -117,7 +117,10 @@ def camera_info_intrinsics(K: Any, width: int, height: int, roi: tuple, binning:
         raise InputError(f"{where}: roi {rw}x{rh}+{x0}+{y0} exceeds the {width}x{height} sensor")
     if (bx, by, x0, y0, rw, rh) != (1, 1, 0, 0, width, height):
         width, height = rw // bx, rh // by
-        fx, fy, cx, cy = fx / bx, fy / by, (cx - x0) / bx, (cy - y0) / by
+        # pixel centres at integer coordinates (as everywhere here): a bx-binned pixel j covers
+        # sensor pixels bx j .. bx j + bx - 1, centred at bx j + (bx - 1) / 2
+        fx, fy = fx / bx, fy / by
+        cx, cy = (cx - x0 + 0.5) / bx - 0.5, (cy - y0 + 0.5) / by - 0.5
     return width, height, float(fx), float(fy), float(cx), float(cy)
 
 
