@@ -244,6 +244,9 @@ def exp_score(a, cfg: MapperConfig, base: dict | None) -> dict:
         ek = eval_views(m, seq, kf)
         en = eval_views(m, seq, novel)
         res[name] = {"num_gaussians": m.num_gaussians, "psnr_keyframes_db": ek["psnr_db"],
+                     # pixels with a surface only (the street's sky is not mapped and would dilute
+                     # a difference of the map into its own large error)
+                     "psnr_keyframes_surface_db": ek["psnr_surface_db"],
                      "psnr_novel_db": en["psnr_db"], "pruned": m.counters["pruned"],
                      "stable": int(m.gm.stable.sum()), "time_per_kf_s": st["time_per_kf_s"]}
         log(f"score[{name}]:", res[name])
@@ -253,6 +256,8 @@ def exp_score(a, cfg: MapperConfig, base: dict | None) -> dict:
         if name != "off":
             r["reduction_pct"] = 100.0 * (1 - r["num_gaussians"] / max(1, off["num_gaussians"]))
             r["psnr_loss_db"] = off["psnr_keyframes_db"] - r["psnr_keyframes_db"]
+            if off["psnr_keyframes_surface_db"] is not None and r["psnr_keyframes_surface_db"] is not None:
+                r["psnr_surface_loss_db"] = off["psnr_keyframes_surface_db"] - r["psnr_keyframes_surface_db"]
     return {"scene": a.score_scene, "frames": seq.n, "keyframes": len(kf), "variants": res}
 
 

@@ -53,12 +53,23 @@ def camera_to_camera_info(camera: CameraModel, stamp_ns: int, frame_id: str,
     return msg
 
 
-def camera_info_to_camera(msg: CameraInfo, where: str = "camera_info") -> CameraModel:
-    """CameraInfo -> CameraModel of the published image (InputError naming the bad field)."""
+def camera_info_to_camera(msg: CameraInfo, where: str = "camera_info",
+                          rectified: bool = False) -> CameraModel:
+    """CameraInfo -> CameraModel of the published image (InputError naming the bad field).
+    ``rectified``: the image topic carries rectified images (``image_rect``, see
+    :func:`vings_core.io.calib_yaml.is_rectified_topic`): the camera is then ``P[:3, :3]`` without
+    distortion, as the bag reader does."""
     width, height = int(msg.width), int(msg.height)
     if width <= 0 or height <= 0:
         raise InputError(f"{where}: width/height {width}x{height} must be positive")
     K = np.asarray(msg.k, dtype=np.float64).reshape(3, 3)
+    if rectified:
+        P = np.asarray(msg.p, dtype=np.float64).reshape(3, 4)
+        if not (np.all(np.isfinite(P)) and P[0, 0] > 0 and P[1, 1] > 0):
+            raise InputError(f"{where}: the image topic carries rectified images but field p (the "
+                             f"projection matrix) is not set")
+        K = P[:3, :3].copy()
+        msg = _without_distortion(msg)
     if not np.all(np.isfinite(K)):
         raise InputError(f"{where}: field k holds non-finite values")
     fx, fy = K[0, 0], K[1, 1]
@@ -102,6 +113,14 @@ def camera_info_to_camera(msg: CameraInfo, where: str = "camera_info") -> Camera
                            cy=float(cy), distortion_model=model, distortion=coeffs)
     except ValueError as e:
         raise InputError(f"{where}: {e}") from None
+
+
+def _without_distortion(msg: CameraInfo):
+    """A shallow stand-in of ``msg`` with no distortion (the fields the reader uses)."""
+    from types import SimpleNamespace
+    return SimpleNamespace(width=msg.width, height=msg.height, k=msg.k, p=msg.p, d=[],
+                           distortion_model="none", roi=msg.roi, binning_x=msg.binning_x,
+                           binning_y=msg.binning_y)
 
 
 __all__ = ["camera_to_camera_info", "camera_info_to_camera"]

@@ -273,8 +273,7 @@ def make_bag(path: Path, spec: BagSpec, storage: str = "mcap") -> Path:
             msgs.append((s, topic, "sensor_msgs/msg/Imu", ser(m, "sensor_msgs/msg/Imu")))
     if spec.camera_info:
         b = spec.info_scale
-        # the b-times larger sensor: pixel centres at integer coordinates, so cx_big = (cx + 0.5) b - 0.5
-        K = np.array([FX * b, 0, (CX + 0.5) * b - 0.5, 0, FY * b, (CY + 0.5) * b - 0.5, 0, 0, 1.0])
+        K = np.array([FX * b, 0, CX * b, 0, FY * b, CY * b, 0, 0, 1.0])
         P = np.array([FX, 0, CX, 0, 0, FY, CY, 0, 0, 0, 1.0, 0])
         roi = T["sensor_msgs/msg/RegionOfInterest"](x_offset=0, y_offset=0, height=0, width=0,
                                                      do_rectify=False)

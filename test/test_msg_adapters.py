@@ -213,8 +213,7 @@ def test_camera_info_binning_roi_and_tolerated_variants():
     msg.roi.x_offset, msg.roi.y_offset, msg.roi.width, msg.roi.height = 100, 40, 400, 300
     b = ma.camera_info_to_camera(wire(msg))
     assert (b.width, b.height) == (200, 150)
-    # pixel centres at integer coordinates: cx' = (cx - x0 + 0.5) / 2 - 0.5
-    assert (b.fx, b.fy, b.cx, b.cy) == (200.0, 205.0, 134.75, 104.75)
+    assert (b.fx, b.fy, b.cx, b.cy) == (200.0, 205.0, 135.0, 105.0)     # image_geometry's formulas
     msg = ma.camera_to_camera_info(cam, 0, "cam")
     msg.distortion_model = "rational_polynomial"
     msg.d = [0.1, 0.01, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0]
@@ -565,3 +564,20 @@ def test_keyframe_variance_nan_means_unknown_and_negative_is_refused():
     parts = {k: wire(m) for k, m in kfa.keyframe_to_msgs(replace(kf, inv_depth_var=var)).as_dict().items()}
     with pytest.raises(InputError, match="/vings/keyframe/inv_depth_var.*negative"):
         ma.msgs_to_keyframe(**parts)
+
+
+def test_rectified_image_topic_takes_the_projection_matrix():
+    """An image topic remapped to image_proc's rectified output: the camera is P without
+    distortion (K and D describe the raw sensor); no P is an error naming the field."""
+    from vings_core.io.calib_yaml import is_rectified_topic
+    assert is_rectified_topic("/cam/image_rect") and is_rectified_topic("/cam/image_rect_color/compressed")
+    assert not is_rectified_topic("/cam/image_raw/compressed") and not is_rectified_topic("")
+    cam = CameraModel(64, 48, 50.0, 50.0, 31.5, 23.5, "radtan", np.array([-0.3, 0.1, 0, 0, 0]))
+    msg = ma.camera_to_camera_info(cam, 0, "cam")
+    msg.p = [45.0, 0.0, 30.0, 0.0, 0.0, 45.0, 22.0, 0.0, 0.0, 0.0, 1.0, 0.0]
+    assert ma.camera_info_to_camera(wire(msg)).distortion_model == "radtan"
+    rect = ma.camera_info_to_camera(wire(msg), rectified=True)
+    assert rect == CameraModel(64, 48, 45.0, 45.0, 30.0, 22.0)
+    msg.p = [0.0] * 12
+    with pytest.raises(InputError, match="rectified images but field p"):
+        ma.camera_info_to_camera(wire(msg), rectified=True)

@@ -438,6 +438,10 @@ def test_topics_and_options_validation():
         ReplayOptions(publish_log="/tmp").validate()
     with pytest.raises(ConfigError, match="--publish-log .*cannot write"):
         ReplayOptions(publish_log="/proc/vings/log.csv").validate()
+    import tempfile
+    with tempfile.TemporaryDirectory() as d:     # missing folders: fine, and not created by the check
+        ReplayOptions(publish_log=f"{d}/a/b/log.csv").validate()
+        assert not os.path.exists(f"{d}/a")
     o = ReplayOptions(topics={"image": "/cam/img"})
     o.validate()
     assert o.topics["image"] == "/cam/img" and o.topics["imu"] == T.IMU_TOPIC

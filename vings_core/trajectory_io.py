@@ -71,7 +71,7 @@ def read_tum(path: str | os.PathLike) -> Trajectory:
     if not path.is_file():
         raise InputError(f"{path}: trajectory file not found")
     try:
-        text = path.read_text()
+        text = path.read_text(encoding="utf-8")
     except UnicodeDecodeError as e:
         raise InputError(f"{path}: not a text trajectory file (byte {e.start} is not UTF-8)") from None
     except OSError as e:

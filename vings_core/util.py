@@ -71,15 +71,23 @@ def probe_writable_dir(d: str | os.PathLike) -> None:
 
 
 def check_output_file(path: str | os.PathLike, what: str) -> Path:
-    """Before a long job: ``path`` can be written as a file (not a folder; its folder is created
-    and write-tested). Raises :class:`VingsError` naming ``what`` (e.g. the option)."""
+    """Before a long job: ``path`` (``~`` expanded; the returned path) can be written as a file: not
+    a folder, and its nearest existing folder is write-tested (missing folders are created only
+    when the file is written). Raises :class:`VingsError` naming ``what`` (e.g. the option)."""
     path = Path(path).expanduser().absolute()
     if path.is_dir():
         raise VingsError(f"{what} {path}: is a folder; give a file name")
+    base = path.parent
+    while not base.exists() and base != base.parent:
+        base = base.parent
     try:
-        probe_writable_dir(path.parent)
+        if not base.is_dir():
+            raise NotADirectoryError(20, f"{base} is not a folder")
+        fd, probe = tempfile.mkstemp(prefix=".write-test.", dir=base)
+        os.close(fd)
+        os.unlink(probe)
     except OSError as e:
-        raise VingsError(f"{what} {path}: cannot write to {path.parent} ({e.strerror or e})") from None
+        raise VingsError(f"{what} {path}: cannot write there ({e.strerror or e})") from None
     return path
 
 

@@ -27,7 +27,7 @@ from nav_msgs.msg import Odometry
 from diagnostic_msgs.msg import DiagnosticArray
 from vings_core.errors import InputError
 from vings_core.frontend import Frontend, FrontendConfig
-from vings_core.io.calib_yaml import load_calibration_yaml
+from vings_core.io.calib_yaml import is_rectified_topic, load_calibration_yaml
 from vings_core.io.undistort import Undistorter
 from vings_core.pipeline import FrontendPoseLink, PoseCorrections, RunConfig
 from vings_core.types import CameraModel, Frame, Trajectory
@@ -74,7 +74,9 @@ class FrontendNode(Node):
             self._set_camera(calib.camera)
 
         sq = T.sensor_qos
-        self.create_subscription(Image, T.IMAGE_TOPIC, self._on_image, sq(T.IMAGE_DEPTH))
+        image_sub = self.create_subscription(Image, T.IMAGE_TOPIC, self._on_image, sq(T.IMAGE_DEPTH))
+        # remapped to image_proc's rectified output: the camera is CameraInfo's P, not K and D
+        self._rectified = is_rectified_topic(image_sub.topic_name)
         self.create_subscription(CameraInfo, T.CAMERA_INFO_TOPIC, self._on_camera_info,
                                  sq(T.CAMERA_INFO_DEPTH))
         self.create_subscription(Imu, T.IMU_TOPIC, self._on_imu, sq(T.IMU_DEPTH))
@@ -107,7 +109,7 @@ class FrontendNode(Node):
     def _on_camera_info(self, msg: CameraInfo) -> None:
         if self.raw_camera is None:
             try:
-                cam = camera_info_to_camera(msg, T.CAMERA_INFO_TOPIC)
+                cam = camera_info_to_camera(msg, T.CAMERA_INFO_TOPIC, self._rectified)
             except InputError as e:
                 # e.g. a driver that publishes K = 0 until its calibration is loaded: keep waiting
                 self.bad_camera_infos += 1

@@ -69,14 +69,14 @@ class Launcher:
             raise ConfigError(f"{opt.params_file}: params file not found")
         if opt.record and not str(opt.record).endswith(".mcap"):
             raise ConfigError(f"--record {opt.record}: the output must be a .mcap file")
+        if opt.record:      # before any node starts, not when the recorder dies
+            try:
+                opt.record = str(check_output_file(opt.record, "--record"))
+            except VingsError as e:
+                raise ConfigError(str(e)) from None
         if opt.record and Path(opt.record).exists():
             raise ConfigError(f"--record {opt.record}: the file exists; recordings are never "
                               f"overwritten, choose a new name")
-        if opt.record:      # before any node starts, not when the recorder dies
-            try:
-                check_output_file(opt.record, "--record")
-            except VingsError as e:
-                raise ConfigError(str(e)) from None
         if opt.checkpoint:
             opt.extra_params.setdefault("ros.checkpoint_path", str(Path(opt.checkpoint).resolve()))
         self.env = ros_environment(opt.domain_id, log_dir=opt.log_dir)

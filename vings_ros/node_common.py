@@ -256,7 +256,10 @@ def run_node(make_node: Callable[[], Any], args: Optional[list[str]] = None) -> 
     ex = None
     code = 0
     try:
-        node = make_node()
+        try:
+            node = make_node()
+        except OSError as e:       # an output the node cannot create (recording, checkpoint folder)
+            raise VingsError(str(e)) from None
         ex = SingleThreadedExecutor()
         ex.add_node(node)
         while not stop.is_set() and rclpy.ok() and node.error is None:
@@ -265,7 +268,7 @@ def run_node(make_node: Callable[[], Any], args: Optional[list[str]] = None) -> 
             err = node.error
             code = 2 if isinstance(err, VingsError) else 1
             print(f"{node.get_name()}: error: {err}", file=sys.stderr)
-    except (VingsError, ValueError, OSError) as e:   # bad parameters, an output it cannot write
+    except (VingsError, ValueError) as e:
         print(f"vings node: error: {e}", file=sys.stderr)
         code = 2
     except ExternalShutdownException:

@@ -114,7 +114,7 @@ class ReplayOptions:
             seen[v] = k
         if self.publish_log:    # found before the replay, not after it
             try:
-                check_output_file(self.publish_log, "--publish-log")
+                self.publish_log = str(check_output_file(self.publish_log, "--publish-log"))
             except VingsError as e:
                 raise ConfigError(str(e)) from None
         self.topics = full

@@ -31,8 +31,8 @@ from ..geometry import np_quat_to_rotmat
 from ..trajectory_io import sec_nsec_to_ns
 from ..types import CameraModel, Frame
 from .base import SourceOptions
-from .calib_yaml import (CalibParts, camera_info_intrinsics, distortion_model_name, make_camera,
-                         read_calibration_parts)
+from .calib_yaml import (CalibParts, camera_info_intrinsics, distortion_model_name, is_rectified_topic,
+                         make_camera, read_calibration_parts)
 from .common import LoaderSource, check_size, order_stamps
 from .image_codec import decode_compressed, decode_image
 
@@ -80,11 +80,6 @@ def _field(msg, *names):
     raise AttributeError(names[0])
 
 
-def is_rectified_topic(topic: Optional[str]) -> bool:
-    """ROS naming: ``image_rect`` / ``image_rect_color`` (image_proc) carry rectified images."""
-    return bool(topic) and str(topic).rstrip("/").split("/")[-1].startswith("image_rect")
-
-
 def camera_from_camera_info(msg, where: str, rectified: bool = False) -> Optional[CameraModel]:
     """A CameraInfo message (ROS 1 or 2 field names) -> raw CameraModel of the recorded image
     (region of interest and binning applied, :func:`camera_info_intrinsics`), or None if
@@ -95,9 +90,10 @@ def camera_from_camera_info(msg, where: str, rectified: bool = False) -> Optiona
     D = np.asarray(_field(msg, "d", "D"), dtype=np.float64).reshape(-1)
     if rectified:
         P = np.asarray(_field(msg, "p", "P"), dtype=np.float64).reshape(3, 4)
-        if P[0, 0] > 0 and P[1, 1] > 0:
-            K, D = P[:3, :3].copy(), np.zeros(0)
-            K[0, 1] = 0.0 if abs(K[0, 1]) < 1e-12 else K[0, 1]
+        if not (P[0, 0] > 0 and P[1, 1] > 0):
+            raise InputError(f"{where}: the image topic carries rectified images but the CameraInfo "
+                             f"has no projection matrix P; give the camera with --calib")
+        K, D = P[:3, :3].copy(), np.zeros(0)
     if K[0, 0] <= 0 or K[1, 1] <= 0:
         return None
     name = "none" if rectified else (msg.distortion_model or ("plumb_bob" if np.any(D) else "none"))

@@ -117,11 +117,26 @@ def camera_info_intrinsics(K: Any, width: int, height: int, roi: tuple, binning:
         raise InputError(f"{where}: roi {rw}x{rh}+{x0}+{y0} exceeds the {width}x{height} sensor")
     if (bx, by, x0, y0, rw, rh) != (1, 1, 0, 0, width, height):
         width, height = rw // bx, rh // by
-        # pixel centres at integer coordinates (as everywhere here): a bx-binned pixel j covers
-        # sensor pixels bx j .. bx j + bx - 1, centred at bx j + (bx - 1) / 2
-        fx, fy = fx / bx, fy / by
-        cx, cy = (cx - x0 + 0.5) / bx - 0.5, (cy - y0 + 0.5) / by - 0.5
+        # image_geometry's formulas, so every ROS consumer of this CameraInfo agrees: exact for
+        # image_proc's decimation (output pixel j = sensor pixel b j); for hardware binning that
+        # averages b x b blocks the centre would be (cx - x0 + 0.5) / b - 0.5, a quarter pixel away
+        fx, fy, cx, cy = fx / bx, fy / by, (cx - x0) / bx, (cy - y0) / by
     return width, height, float(fx), float(fy), float(cx), float(cy)
+
+
+#: image_transport suffixes after the image topic's own name (``/cam/image_rect/compressed``)
+TRANSPORT_SUFFIXES = ("compressed", "compressedDepth", "theora", "zstd", "ffmpeg", "h264")
+
+
+def is_rectified_topic(topic: Optional[str]) -> bool:
+    """ROS naming: ``image_rect`` / ``image_rect_color`` / ``image_rect_raw`` (image_proc, RealSense)
+    carry rectified images, also behind a transport suffix (``.../image_rect/compressed``)."""
+    if not topic:
+        return False
+    parts = [p for p in str(topic).split("/") if p]
+    while parts and parts[-1] in TRANSPORT_SUFFIXES:
+        parts.pop()
+    return bool(parts) and parts[-1].startswith("image_rect")
 
 
 def make_camera(width: Any, height: Any, fx: Any, fy: Any, cx: Any, cy: Any, model: str,
@@ -173,7 +188,7 @@ def read_yaml_doc(path: str | os.PathLike) -> dict:
     if not path.is_file():
         raise InputError(f"{path}: calibration file not found")
     try:
-        text = path.read_text()
+        text = path.read_text(encoding="utf-8")
     except UnicodeDecodeError as e:
         raise InputError(f"{path}: not a text calibration file (byte {e.start} is not UTF-8)") from None
     except OSError as e:
