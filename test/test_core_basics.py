@@ -251,3 +251,22 @@ def test_launch_never_overwrites_a_recording(tmp_path):
     # a recording that could not be written is refused before any node starts
     with pytest.raises(ConfigError, match="--record .*cannot write"):
         Launcher(LaunchOptions(record="/proc/vings/out.mcap"))
+
+
+@pytest.mark.parametrize("theta", [1.01e-4, 2e-4, 1e-3, 5e-3, 0.3])
+def test_se3_exp_is_accurate_in_float32_just_above_the_series_cutoff(theta):
+    """(1 - cos t)/t^2 and (t - sin t)/t^3 cancel in float32 near t = 1e-4 (translation off by ~1000
+    eps, the gradient by 2x before the half-angle form and the series for C)."""
+    from vings_core.geometry import se3_exp
+    xi64 = torch.tensor([0.3, -0.2, 0.5, 0.0, 0.0, theta], dtype=torch.float64, requires_grad=True)
+    xi32 = xi64.detach().float().requires_grad_(True)
+    T64, T32 = se3_exp(xi64), se3_exp(xi32)
+    assert float((T32.double() - T64).abs().max()) < 2e-7
+    T64[0, 3].backward()
+    T32[0, 3].backward()
+    assert torch.allclose(xi32.grad.double(), xi64.grad, atol=1e-5)
+
+
+def test_camera_refuses_non_finite_distortion():
+    with pytest.raises(ValueError, match="distortion coefficients must be finite"):
+        CameraModel(64, 48, 50.0, 50.0, 31.5, 23.5, "radtan", np.array([float("nan"), 0, 0, 0]))

@@ -46,6 +46,10 @@ class CameraModel:
             raise ValueError(f"unknown distortion model {self.distortion_model!r}; "
                              f"expected one of {DISTORTION_MODELS}")
         self.distortion = np.asarray(self.distortion, dtype=np.float64).reshape(-1)
+        if not np.all(np.isfinite(self.distortion)):
+            # a NaN coefficient would undistort every frame to black without a word
+            raise ValueError(f"camera distortion coefficients must be finite, got "
+                             f"{self.distortion.tolist()}")
         for name in ("width", "height"):       # 640.0 from a YAML file is 640; 640.5 is an error
             v = getattr(self, name)
             try:

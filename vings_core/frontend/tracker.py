@@ -77,10 +77,11 @@ def orthonormalize(T: torch.Tensor) -> torch.Tensor:
     U, _, Vh = torch.linalg.svd(T[..., :3, :3])
     R = U @ Vh
     det = torch.linalg.det(R)
-    U = torch.where(det[..., None, None] < 0, U * torch.tensor([1.0, 1.0, -1.0], dtype=T.dtype), U)
+    flip = torch.tensor([1.0, 1.0, -1.0], dtype=T.dtype, device=T.device)
+    U = torch.where(det[..., None, None] < 0, U * flip, U)
     out = T.clone()
     out[..., :3, :3] = U @ Vh
-    out[..., 3, :] = torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=T.dtype)
+    out[..., 3, :] = torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=T.dtype, device=T.device)
     return out
 STATES = ("waiting", "tracking", "lost")
 MAX_PENDING = 400          # waiting frames re-posed at initialisation (most recent)

@@ -322,8 +322,7 @@ def apply_pose_delta(pose_delta: torch.Tensor, T_cw: torch.Tensor) -> torch.Tens
     """``se3_exp(pose_delta) @ T_cw`` in float64, differentiable at ``pose_delta = 0``.
 
     Uses the matrix exponential of the twist ``[[phi^, rho], [0, 0]]``, which equals
-    :func:`vings_core.geometry.se3_exp` (``[rho, phi]`` order, left Jacobian) but has finite
-    gradients at 0 (geometry.se3_exp's gradient is NaN there).
+    :func:`vings_core.geometry.se3_exp` (``[rho, phi]`` order, left Jacobian).
     """
     d = pose_delta.to(torch.float64)
     X = torch.zeros(4, 4, dtype=torch.float64, device=d.device)
