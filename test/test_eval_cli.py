@@ -95,7 +95,7 @@ def test_cli_errors(capsys, trajs):
         capsys, ["eval", str(d / "est.tum"), "--gt", str(d / "gt.tum"), "--write-metrics"])
     assert "has no trajectory.tum" in run_err(capsys, ["eval", str(d), "--gt", str(d / "gt.tum")])
     (d / "bin.tum").write_bytes(b"# header\n\x7fELF\xf0\x9f\xff binary")
-    assert "bin.tum: not a text trajectory file" in run_err(
+    assert "bin.tum: not UTF-8 text" in run_err(
         capsys, ["eval", str(d / "bin.tum"), "--gt", str(d / "gt.tum")])
     assert "cannot read" in run_err(capsys, ["eval", str(d / "est.tum"), "--gt", "/proc/self/mem"])
 

@@ -108,7 +108,7 @@ def test_bad_calibration_files(tmp_path, text, match):
 def test_binary_calibration_file_is_an_input_error(tmp_path):
     p = tmp_path / "bin.yaml"
     p.write_bytes(b"\x7fELF\xff\xfe binary")
-    with pytest.raises(InputError, match="bin.yaml: not a text calibration file"):
+    with pytest.raises(InputError, match="bin.yaml: not UTF-8 text.*calibration file"):
         load_calibration_yaml(p)
 
 

@@ -22,7 +22,7 @@ from typing import Any, Type, TypeVar
 import yaml
 
 from .errors import ConfigError
-from .util import describe_yaml_error
+from .util import describe_yaml_error, read_utf8_text
 
 C = TypeVar("C")
 
@@ -40,12 +40,7 @@ def read_params_file(path: str | os.PathLike, sections: tuple = KNOWN_SECTIONS) 
     path = Path(path)
     if not path.is_file():
         raise ConfigError(f"{path}: params file not found")
-    try:
-        text = path.read_text(encoding="utf-8")
-    except UnicodeDecodeError as e:
-        raise ConfigError(f"{path}: not UTF-8 text (byte {e.start}); save the params file as UTF-8") from None
-    except OSError as e:
-        raise ConfigError(f"{path}: cannot read the params file ({e.strerror or e})") from None
+    text = read_utf8_text(path, "params file", ConfigError)
     try:
         doc = yaml.safe_load(text) or {}
     except yaml.YAMLError as e:

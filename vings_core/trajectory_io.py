@@ -11,7 +11,7 @@ import numpy as np
 from .errors import InputError
 from .geometry import np_quat_to_rotmat, np_rotmat_to_quat
 from .types import Trajectory
-from .util import atomic_write_text
+from .util import atomic_write_text, read_utf8_text
 
 
 def stamp_ns_to_str(stamp_ns: int) -> str:
@@ -70,12 +70,7 @@ def read_tum(path: str | os.PathLike) -> Trajectory:
     path = Path(path)
     if not path.is_file():
         raise InputError(f"{path}: trajectory file not found")
-    try:
-        text = path.read_text(encoding="utf-8")
-    except UnicodeDecodeError as e:
-        raise InputError(f"{path}: not a text trajectory file (byte {e.start} is not UTF-8)") from None
-    except OSError as e:
-        raise InputError(f"{path}: cannot read ({e.strerror or e})") from None
+    text = read_utf8_text(path, "trajectory file", InputError)
     stamps, poses = [], []
     for ln, line in enumerate(text.splitlines(), 1):
         line = line.strip()

@@ -52,6 +52,17 @@ def atomic_write(path: str | os.PathLike, write: Callable[[str], None]) -> None:
         raise
 
 
+def read_utf8_text(path: str | os.PathLike, kind: str, error: type = VingsError) -> str:
+    """The text of ``path`` (UTF-8). A binary / non-UTF-8 or unreadable file raises ``error`` (a
+    :class:`VingsError` subclass) naming the file and ``kind`` (e.g. "params file"), one line."""
+    try:
+        return Path(path).read_text(encoding="utf-8")
+    except UnicodeDecodeError as e:
+        raise error(f"{path}: not UTF-8 text (byte {e.start}); is this a {kind}?") from None
+    except OSError as e:
+        raise error(f"{path}: cannot read the {kind} ({e.strerror or e})") from None
+
+
 def describe_yaml_error(e: Exception) -> str:
     """One line for a PyYAML error: where (line, column) and what, without its multi-line excerpt."""
     mark = getattr(e, "problem_mark", None)

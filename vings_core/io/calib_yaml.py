@@ -33,7 +33,7 @@ import yaml
 
 from ..errors import InputError
 from ..types import Calibration, CameraModel
-from ..util import atomic_write_text, describe_yaml_error
+from ..util import atomic_write_text, describe_yaml_error, read_utf8_text
 
 # Published intrinsics of the TUM RGB-D Kinects (TUM RGB-D benchmark web page "File Formats ->
 # Intrinsic Camera Calibration of the Kinect"; ORB-SLAM2 ships the same in TUM1/2/3.yaml). 640x480.
@@ -187,12 +187,7 @@ def read_yaml_doc(path: str | os.PathLike) -> dict:
     path = Path(path)
     if not path.is_file():
         raise InputError(f"{path}: calibration file not found")
-    try:
-        text = path.read_text(encoding="utf-8")
-    except UnicodeDecodeError as e:
-        raise InputError(f"{path}: not a text calibration file (byte {e.start} is not UTF-8)") from None
-    except OSError as e:
-        raise InputError(f"{path}: cannot read ({e.strerror or e})") from None
+    text = read_utf8_text(path, "calibration file", InputError)
     text = re.sub(r"^%YAML[: ]?1\.\d.*$", "", text, flags=re.M)
     text = text.replace("!!opencv-matrix", "")
     try:
