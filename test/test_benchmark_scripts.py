@@ -19,22 +19,26 @@ def _load(name: str):
     return mod
 
 
-@pytest.mark.parametrize("argv", [["--exp", "bogus"], ["--exp", "room", "--kf-every", "1"],
-                                  ["--sc-storage", "a"], ["--exp", "pose", "--quick", "--kf-every", "15"],
-                                  ["--max-novel", "0"]])
-def test_mapping_benchmark_refuses_bad_arguments(argv, capsys):
+@pytest.mark.parametrize("argv,msg", [(["--exp", "bogus"], "unknown experiment"),
+                                      (["--exp", "room", "--kf-every", "1"], "--kf-every must be >= 2"),
+                                      (["--sc-storage", "a"], "--sc-storage: expected comma-separated"),
+                                      (["--exp", "pose", "--quick", "--kf-every", "15"], "fewer than 3 keyframes"),
+                                      (["--max-novel", "0"], "--max-novel must be >= 1"),
+                                      (["--score-scene", "moon"], "invalid choice")])
+def test_mapping_benchmark_refuses_bad_arguments(argv, msg, capsys):
     with pytest.raises(SystemExit) as e:
         _load("mapping").main(argv)
     assert e.value.code == 2
-    assert "error:" in capsys.readouterr().err
+    assert msg in capsys.readouterr().err
 
 
-@pytest.mark.parametrize("argv", [["--sizes", "10k,1M"], ["--repeat", "0"]])
-def test_raster_benchmark_refuses_bad_arguments_before_running(argv, capsys):
+@pytest.mark.parametrize("argv,msg", [(["--sizes", "10k,1M"], "1M"), (["--repeat", "0"], "--repeat")])
+def test_raster_benchmark_refuses_bad_arguments_before_running(argv, msg, capsys):
     with pytest.raises(SystemExit) as e:
         _load("raster").main(argv)
     assert e.value.code == 2
-    assert "error:" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert "error:" in err and msg in err
 
 
 def test_mapping_benchmark_prints_json_when_an_experiment_fails(capsys, tmp_path):
@@ -49,11 +53,11 @@ def test_novel_views_are_never_keyframes_and_json_is_strict():
     m = _load("mapping")
     kf, novel = m.split_views(40, 2, 100)
     assert kf and novel and not set(kf) & set(novel)
-    with pytest.raises(ValueError):
+    with pytest.raises(ValueError, match="kf_every must be >= 2"):
         m.split_views(40, 1, 100)
     out = m._json_safe({"a": float("inf"), "b": [np.float32(1.5), np.int64(3), np.bool_(True)],
                         "c": float("nan")})
     assert out == {"a": None, "b": [1.5, 3, True], "c": None}
     json.dumps(out, allow_nan=False)
     assert m._finite_mean([]) is None and m._finite_mean([1.0, 3.0]) == 2.0
-    assert not math.isnan(m.peak_rss_mb())
+    assert m.peak_rss_mb() > 10          # this very process holds more than 10 MB

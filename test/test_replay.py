@@ -489,12 +489,17 @@ def test_ros_environment(tmp_path, monkeypatch):
         ros_env.ros_environment(base={"VINGS_DDS": "carrier-pigeon"})
     with pytest.raises(ConfigError, match="ROS_DOMAIN_ID"):
         ros_env.ros_environment(domain_id=300, base=base)
-    # ament index finds a package registered under sys.prefix only with AMENT_PREFIX_PATH set
-    idx = Path(sys.prefix) / "share" / "ament_index" / "resource_index" / "packages" / "vings_ros"
-    if idx.exists():
-        monkeypatch.setenv("AMENT_PREFIX_PATH", env["AMENT_PREFIX_PATH"])
-        from ament_index_python.packages import get_package_share_directory
-        assert Path(get_package_share_directory("vings_ros")).is_dir()
+    # the ament index finds a package registered under a prefix listed in AMENT_PREFIX_PATH (the
+    # editable install does not register vings_ros under sys.prefix: a prefix made here instead)
+    prefix = tmp_path / "prefix"
+    (prefix / "share" / "ament_index" / "resource_index" / "packages").mkdir(parents=True)
+    (prefix / "share" / "ament_index" / "resource_index" / "packages" / "vings_ros").write_text("")
+    (prefix / "share" / "vings_ros").mkdir()
+    env2 = ros_env.ros_environment(base={**base, "AMENT_PREFIX_PATH": str(prefix)})
+    assert str(prefix) in env2["AMENT_PREFIX_PATH"].split(os.pathsep)
+    monkeypatch.setenv("AMENT_PREFIX_PATH", env2["AMENT_PREFIX_PATH"])
+    from ament_index_python.packages import get_package_share_directory
+    assert Path(get_package_share_directory("vings_ros")) == prefix / "share" / "vings_ros"
 
 
 def test_cli_reports_bad_arguments_in_one_line(tmp_path, capsys, recording):

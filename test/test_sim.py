@@ -378,12 +378,18 @@ def test_moving_objects_never_hit_the_camera(which, clearance, room):
 
 def test_street_cars_move_and_are_masked(street):
     assert len(street.movers) > 0
+    ts = np.linspace(0, street.motion.duration, 40)
+    for m in street.movers:          # every car drives (metres over the route), none stands still
+        assert max(np.ptp(m.cx(ts)), np.ptp(m.cy(ts))) > 3.0
     cam = default_camera(96, 64)
-    frac = []
-    for t in np.linspace(0, street.motion.duration, 40):
+    frac, masks = [], []
+    for t in ts:
         _, _, mask = render_view(street, cam, street.T_wc(t)[0], t)
         frac.append(mask.mean())
-    assert max(frac) > 0.001
+        masks.append(mask)
+    seen = [i for i, f in enumerate(frac) if f > 0]
+    assert max(frac) > 0.005 and len(seen) >= 3
+    assert any(not np.array_equal(masks[a], masks[b]) for a, b in zip(seen[:-1], seen[1:]))
 
 
 # ----------------------------------------------------------------------------- EuRoC output

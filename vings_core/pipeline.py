@@ -615,7 +615,11 @@ class SlamRunner:
         n_total = len(stamps)
         if n_total == 0:
             raise InputError(f"{self.source.path}: no camera frames to process")
-        keep_novel = set(_even_subset(list(stamps), max(self.cfg.eval_novel * 2, 1)))
+        # candidates for the novel views, chosen before it is known which frames become keyframes:
+        # twice as many as needed and at least eight more, so a few keyframes among them (the first
+        # frame always is one) still leave eval_novel non-keyframes
+        n_novel = self.cfg.eval_novel
+        keep_novel = set(_even_subset(list(stamps), max(2 * n_novel, n_novel + 8) if n_novel else 0))
         worker = None
         if not self.cfg.sync:
             worker = threading.Thread(target=self._mapper_loop, name="vings-mapper", daemon=True)
