@@ -195,9 +195,15 @@ def _inodes(names) -> dict:
     return out
 
 
-def _left_over(inodes: dict) -> list:
-    """Files of ``inodes`` that still exist as the same file (not re-created by someone else)."""
-    return [n for n, ino in _inodes(inodes).items() if inodes[n] == ino]
+def _left_over(inodes: dict, wait_s: float = 3.0) -> list:
+    """Files of ``inodes`` that still exist as the same file (not re-created by someone else),
+    after waiting up to ``wait_s`` for them to go (a peer releases a port a moment after it closes)."""
+    t_end = time.monotonic() + wait_s
+    while True:
+        left = [n for n, ino in _inodes(inodes).items() if inodes[n] == ino]
+        if not left or time.monotonic() >= t_end:
+            return left
+        time.sleep(0.1)
 
 
 def start_replay(env: dict, root: Path, *args: str) -> subprocess.Popen:
@@ -350,10 +356,6 @@ def test_sigterm_stops_a_looping_replay_cleanly(recording, ros, listener_factory
     lis.close()
     assert files
     left = _left_over(files)
-    t_end = time.monotonic() + 3.0
-    while left and time.monotonic() < t_end:
-        time.sleep(0.1)
-        left = _left_over(files)
     # the replay's own segment and lock files are gone. A port it closed (lock file removed) can
     # outlive it while a live peer -- this process's participant, which lives until rclpy shuts
     # down -- still references it (Fast DDS); such an orphan is what the launcher's cleanup
