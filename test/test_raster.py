@@ -663,3 +663,26 @@ def test_exact_tile_coverage_matches_reference_and_cuts_pairs():
     ref = render_reference(*leaves, T, cam, background=bgl, pose_delta=pd)
     sum((ref[k] * u).sum() for k, u in zip(OUT_KEYS, up)).backward()
     _assert_grads_close(gk, [t.grad for t in leaves] + [bgl.grad, pd.grad])
+
+
+def test_rendered_normal_is_the_surfels_normal_facing_the_camera():
+    """One opaque surfel filling the view, with a known world normal: the rendered (alpha-weighted)
+    camera-frame normal is R_cw n turned towards the camera, and normal_world brings back n."""
+    from vings_core.geometry import np_quat_to_rotmat
+    axis = np.array([1.0, 1.0, 0.0]) / math.sqrt(2.0)
+    q = np.r_[axis * math.sin(math.radians(15)), math.cos(math.radians(15))]     # xyzw, 30 deg
+    n_w = np_quat_to_rotmat(q)[:, 2]
+    T_wc = np_pose_inverse(T_CW)
+    mean = (T_wc @ np.array([0.0, 0.0, 3.0, 1.0]))[:3]
+    g = [torch.tensor(mean[None], dtype=F64), torch.tensor(q[None], dtype=F64),
+         torch.tensor([[3.0, 3.0]], dtype=F64), torch.tensor([1.0], dtype=F64),
+         torch.tensor([[0.5, 0.5, 0.5]], dtype=F64)]
+    out = _fast(g)
+    a = float(out.alpha[24, 31])
+    assert a > 0.98
+    n_c = T_CW[:3, :3] @ n_w
+    mean_c = (T_CW @ np.r_[mean, 1.0])[:3]
+    n_c = n_c if n_c @ mean_c < 0 else -n_c                  # the side the camera sees
+    np.testing.assert_allclose(out.normal[24, 31].numpy() / a, n_c, atol=1e-6)
+    np.testing.assert_allclose(out.normal_world(T_wc)[24, 31].numpy() / a, n_c @ T_CW[:3, :3], atol=1e-6)
+    assert abs(abs(float(out.normal_world(T_wc)[24, 31].numpy() @ n_w)) / a - 1.0) < 1e-6
