@@ -17,7 +17,7 @@ import numpy as np
 from sensor_msgs.msg import CameraInfo, RegionOfInterest
 
 from vings_core.errors import InputError
-from vings_core.io.calib_yaml import camera_info_intrinsics
+from vings_core.io.calib_yaml import camera_info_intrinsics, rectified_camera_matrix
 from vings_core.types import CameraModel
 
 from .stamps import make_header
@@ -62,24 +62,18 @@ def camera_info_to_camera(msg: CameraInfo, where: str = "camera_info",
     width, height = int(msg.width), int(msg.height)
     if width <= 0 or height <= 0:
         raise InputError(f"{where}: width/height {width}x{height} must be positive")
-    K = np.asarray(msg.k, dtype=np.float64).reshape(3, 3)
-    if rectified:
-        P = np.asarray(msg.p, dtype=np.float64).reshape(3, 4)
-        if not (np.all(np.isfinite(P)) and P[0, 0] > 0 and P[1, 1] > 0):
-            raise InputError(f"{where}: the image topic carries rectified images but field p (the "
-                             f"projection matrix) is not set")
-        K = P[:3, :3].copy()
-        msg = _without_distortion(msg)
+    K = rectified_camera_matrix(msg.p, where) if rectified else \
+        np.asarray(msg.k, dtype=np.float64).reshape(3, 3)
     if not np.all(np.isfinite(K)):
         raise InputError(f"{where}: field k holds non-finite values")
     fx, fy = K[0, 0], K[1, 1]
     if not (fx > 0 and fy > 0):
         raise InputError(f"{where}: field k has fx={fx}, fy={fy}; the camera is uncalibrated "
                          f"(REP-104: K = 0) or K is invalid")
-    d = np.asarray(msg.d, dtype=np.float64).reshape(-1)
+    d = np.zeros(0) if rectified else np.asarray(msg.d, dtype=np.float64).reshape(-1)
     if not np.all(np.isfinite(d)):
         raise InputError(f"{where}: field d holds non-finite values")
-    name = str(msg.distortion_model).strip().lower()
+    name = "none" if rectified else str(msg.distortion_model).strip().lower()
     if (name in ("", "none") and not np.any(d)) or d.size == 0:
         # no coefficients at all means no distortion whatever the model says (image_geometry)
         model, coeffs = "none", np.zeros(0)
@@ -113,14 +107,6 @@ def camera_info_to_camera(msg: CameraInfo, where: str = "camera_info",
                            cy=float(cy), distortion_model=model, distortion=coeffs)
     except ValueError as e:
         raise InputError(f"{where}: {e}") from None
-
-
-def _without_distortion(msg: CameraInfo):
-    """A shallow stand-in of ``msg`` with no distortion (the fields the reader uses)."""
-    from types import SimpleNamespace
-    return SimpleNamespace(width=msg.width, height=msg.height, k=msg.k, p=msg.p, d=[],
-                           distortion_model="none", roi=msg.roi, binning_x=msg.binning_x,
-                           binning_y=msg.binning_y)
 
 
 __all__ = ["camera_to_camera_info", "camera_info_to_camera"]

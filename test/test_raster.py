@@ -129,12 +129,16 @@ def _upstream(seed=1, dist_scale=100.0):
 NAMES = ("means", "quats", "scales", "opacities", "colors", "background", "pose_delta")
 
 
-def _assert_grads_close(ga, gb, rtol=1e-7):
+def _assert_grads_close(ga, gb, rtol=1e-7) -> int:
+    """Asserts every gradient pair agrees; returns how many pairs were compared."""
+    n = 0
     for name, a, b in zip(NAMES, ga, gb):
         scale = float(b.abs().max())
         assert scale > 0, name
         err = float((a - b).abs().max())
         assert err <= rtol * scale + 1e-12, (name, err, scale)
+        n += 1
+    return n
 
 
 def test_gradients_match_reference_float64():
@@ -142,7 +146,8 @@ def test_gradients_match_reference_float64():
     up = _upstream()
     gk, _ = _grads(rasterize_2dgs, g, up)
     gr, _ = _grads(render_reference, g, up)
-    _assert_grads_close(gk, gr)
+    # every gradient (means ... pose) compared, none dropped by a length mismatch
+    assert _assert_grads_close(gk, gr) == len(gk) == len(gr) == len(NAMES)
 
 
 def test_sh_colours_and_gradients_match_reference():

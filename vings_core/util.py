@@ -71,14 +71,19 @@ def describe_yaml_error(e: Exception) -> str:
     return f"not valid YAML{at}: {why}"
 
 
-def probe_writable_dir(d: str | os.PathLike) -> None:
-    """Create folder ``d`` if needed and write-test it (a temporary file made and removed);
-    raises ``OSError``. ``os.access`` is not enough: it says yes to root where a write fails."""
-    d = Path(d)
-    d.mkdir(parents=True, exist_ok=True)
+def _write_test(d: Path) -> None:
+    """Make and remove a temporary file in folder ``d``; raises ``OSError``. (``os.access`` is not
+    enough: it says yes to root where a write fails.)"""
     fd, probe = tempfile.mkstemp(prefix=".write-test.", dir=d)
     os.close(fd)
     os.unlink(probe)
+
+
+def probe_writable_dir(d: str | os.PathLike) -> None:
+    """Create folder ``d`` if needed and write-test it; raises ``OSError``."""
+    d = Path(d)
+    d.mkdir(parents=True, exist_ok=True)
+    _write_test(d)
 
 
 def check_output_file(path: str | os.PathLike, what: str) -> Path:
@@ -94,9 +99,7 @@ def check_output_file(path: str | os.PathLike, what: str) -> Path:
     try:
         if not base.is_dir():
             raise NotADirectoryError(20, f"{base} is not a folder")
-        fd, probe = tempfile.mkstemp(prefix=".write-test.", dir=base)
-        os.close(fd)
-        os.unlink(probe)
+        _write_test(base)
     except OSError as e:
         raise VingsError(f"{what} {path}: cannot write there ({e.strerror or e})") from None
     return path

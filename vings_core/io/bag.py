@@ -32,7 +32,7 @@ from ..trajectory_io import sec_nsec_to_ns
 from ..types import CameraModel, Frame
 from .base import SourceOptions
 from .calib_yaml import (CalibParts, camera_info_intrinsics, distortion_model_name, is_rectified_topic,
-                         make_camera, read_calibration_parts)
+                         make_camera, read_calibration_parts, rectified_camera_matrix)
 from .common import LoaderSource, check_size, order_stamps
 from .image_codec import decode_compressed, decode_image
 
@@ -86,14 +86,11 @@ def camera_from_camera_info(msg, where: str, rectified: bool = False) -> Optiona
     uncalibrated (K = 0). ``rectified``: the image topic carries rectified images (``image_rect``);
     its camera is then the projection matrix ``P[:3, :3]`` without distortion (ROS convention:
     ``K``/``D`` describe the raw sensor, which would undistort the images a second time)."""
-    K = np.asarray(_field(msg, "k", "K"), dtype=np.float64).reshape(3, 3)
-    D = np.asarray(_field(msg, "d", "D"), dtype=np.float64).reshape(-1)
     if rectified:
-        P = np.asarray(_field(msg, "p", "P"), dtype=np.float64).reshape(3, 4)
-        if not (P[0, 0] > 0 and P[1, 1] > 0):
-            raise InputError(f"{where}: the image topic carries rectified images but the CameraInfo "
-                             f"has no projection matrix P; give the camera with --calib")
-        K, D = P[:3, :3].copy(), np.zeros(0)
+        K, D = rectified_camera_matrix(_field(msg, "p", "P"), where), np.zeros(0)
+    else:
+        K = np.asarray(_field(msg, "k", "K"), dtype=np.float64).reshape(3, 3)
+        D = np.asarray(_field(msg, "d", "D"), dtype=np.float64).reshape(-1)
     if K[0, 0] <= 0 or K[1, 1] <= 0:
         return None
     name = "none" if rectified else (msg.distortion_model or ("plumb_bob" if np.any(D) else "none"))

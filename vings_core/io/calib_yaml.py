@@ -139,6 +139,16 @@ def is_rectified_topic(topic: Optional[str]) -> bool:
     return bool(parts) and parts[-1].startswith("image_rect")
 
 
+def rectified_camera_matrix(P: Any, where: str) -> np.ndarray:
+    """Camera matrix of rectified images (``image_rect``): ``P[:3, :3]`` of their CameraInfo (its K
+    and D describe the raw sensor). :class:`InputError` when P is not set."""
+    P = np.asarray(P, dtype=np.float64).reshape(3, 4)
+    if not (np.all(np.isfinite(P)) and P[0, 0] > 0 and P[1, 1] > 0):
+        raise InputError(f"{where}: the image topic carries rectified images but field p (the "
+                         f"projection matrix) is not set; give the camera with --calib")
+    return P[:3, :3].copy()
+
+
 def make_camera(width: Any, height: Any, fx: Any, fy: Any, cx: Any, cy: Any, model: str,
                 coeffs: Any, where: str) -> CameraModel:
     """Build a :class:`CameraModel`, turning bad values into an :class:`InputError` naming ``where``."""
