@@ -506,14 +506,67 @@ def _gsplat_ok() -> bool:
     return gsplat_available()
 
 
+def _room_map_scene(width: int = 160, height: int = 112):
+    """Gaussians as the map initialises them from one simulated `room` keyframe (every pixel with
+    depth; scale from the neighbours' spacing, opacity 0.8), the camera moved a little for the
+    render. Returns (means, quats, scales, opacities, colours) float32, camera, T_cw."""
+    from vings_core.mapping.init import gaussians_from_pixels
+    from vings_core.sim import default_camera, make_scene, render_view
+    from vings_core.types import Keyframe
+    scene = make_scene("room", seed=0)
+    cam = default_camera(width, height)
+    T_wc = scene.T_wc(np.array([0.8]))[0]
+    rgb, depth, _ = render_view(scene, cam, T_wc)
+    kf = Keyframe(stamp_ns=1, image=torch.from_numpy(rgb.astype(np.float32) / 255.0), T_wc=T_wc,
+                  depth=torch.from_numpy(depth), inv_depth_var=torch.zeros_like(torch.from_numpy(depth)),
+                  valid=torch.from_numpy(depth > 0), camera=cam)
+    rc = torch.nonzero(torch.from_numpy(depth > 0))
+    m = gaussians_from_pixels(kf, rc, sh_degree=0, init_opacity=0.8, scale_factor=1.0,
+                              min_scale_px=0.5, max_scale_px=4.0)
+    g = [m.means, m.quats, m.scales(), m.opacities(), m.rgb()]
+    T_wc_view = T_wc @ np_pose(np_so3_exp(np.radians(2.0) * np.array([0.3, 0.9, 0.3])), [0.03, -0.02, 0.035])
+    return [t.detach().float().contiguous() for t in g], cam, np_pose_inverse(T_wc_view)
+
+
 @pytest.mark.skipif(not _gsplat_ok(), reason="needs CUDA and the gsplat package")
 def test_cpu_matches_gsplat():  # pragma: no cover - needs a GPU
-    g = [t.float() for t in _scene(300, seed=29)]
-    cpu = rasterize_2dgs(*g, T_CW, CAM, backend="numba")
-    gpu = rasterize_2dgs(*[t.cuda() for t in g], torch.tensor(T_CW).cuda(), CAM, backend="gsplat")
+    """Forward and gradients of the numba path against gsplat's CUDA 2DGS on a map-like scene.
+
+    Not bit-equal by design (docs/rasterizer.md): gsplat bins a splat into tiles by a 3.33-sigma
+    box without the low-pass footprint, so a few pixels near sub-pixel splats differ, and its depth
+    channel is the centre depth; hence statistics, not a max-error bound, for colour/alpha/normal.
+    """
+    g, cam, T_cw = _room_map_scene()
+    H, W = cam.height, cam.width
+    gen = torch.Generator().manual_seed(5)
+    up = {"color": torch.randn(H, W, 3, generator=gen), "alpha": torch.randn(H, W, generator=gen),
+          "normal": torch.randn(H, W, 3, generator=gen)}
+    outs, grads = {}, {}
+    for dev in ("cpu", "cuda"):
+        leaves = [t.to(dev).clone().requires_grad_(True) for t in g]
+        pd = torch.zeros(6, dtype=torch.float64, device=dev, requires_grad=True)
+        out = rasterize_2dgs(*leaves, torch.tensor(T_cw, device=dev), cam, pose_delta=pd,
+                             backend="numba" if dev == "cpu" else "gsplat")
+        sum((getattr(out, k) * u.to(dev)).sum() for k, u in up.items()).backward()
+        outs[dev] = {k: getattr(out, k).detach().cpu().double() for k in ("color", "alpha", "normal", "depth")}
+        grads[dev] = [t.grad.detach().cpu().double().flatten() for t in leaves + [pd]]
+    stats = {}
     for k in ("color", "alpha", "normal"):
-        err = float((getattr(cpu, k) - getattr(gpu, k).cpu()).abs().max())
-        assert err < 2e-3, (k, err)
+        d = (outs["cpu"][k] - outs["cuda"][k]).abs().flatten()
+        stats[k] = (float(d.mean()), float(d.quantile(0.999)))
+    # expected depth: ray-splat hit depth here, centre depth there: close on a smooth surface
+    e = [outs[d]["depth"] / outs[d]["alpha"].clamp_min(1e-6) for d in ("cpu", "cuda")]
+    stats["depth_median_rel"] = float((e[0] - e[1]).abs().median() / e[0].median())
+    for name, a, b in zip(("means", "quats", "scales", "opacities", "colors", "pose_delta"), *grads.values()):
+        stats[name] = (float(a @ b / (a.norm() * b.norm())), float(a.norm() / b.norm()))
+    print("numba vs gsplat:", stats)
+    assert float(outs["cpu"]["alpha"].mean()) > 0.9  # the view is covered
+    for k in ("color", "alpha", "normal"):
+        assert stats[k][0] < 1e-4 and stats[k][1] < 5e-3, (k, stats)
+    assert stats["depth_median_rel"] < 0.01, stats
+    for name in ("means", "quats", "scales", "opacities", "colors", "pose_delta"):
+        cos, ratio = stats[name]
+        assert cos > 0.999 and abs(ratio - 1.0) < 0.02, (name, stats)
 
 
 def test_parallel_path_matches_serial_and_reference(monkeypatch):

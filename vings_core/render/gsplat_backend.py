@@ -46,8 +46,10 @@ def rasterize_gsplat(means, quats, scales, opacities, colors, T_cw: torch.Tensor
     wxyz = torch.cat([quats[:, 3:4], quats[:, :3]], 1)
     sc3 = torch.cat([scales, torch.zeros_like(scales[:, :1])], 1)
     bg = None if background is None else torch.as_tensor(background, device=dev, dtype=dt)[None]
+    # gsplat 1.5 wants post-activation colours per camera ([C, N, 3]); SH stays [N, K, 3]
+    cols = colors[None] if sh_degree is None else colors
     colors_out, alphas, normals, _surf, distort, _median, meta = rasterization_2dgs(
-        means, wxyz, sc3, opacities, colors, T[None], Ks, camera.width, camera.height,
+        means, wxyz, sc3, opacities, cols, T[None], Ks, camera.width, camera.height,
         near_plane=near, far_plane=far, sh_degree=sh_degree, backgrounds=bg,
         render_mode="RGB+D", distloss=True)
     # gsplat returns world-frame normals; ours are camera-frame.
