@@ -743,6 +743,16 @@ def select_pixels(score, ratio, out_sel):
                 out_sel[py0 + q // tw, px0 + q % tw] = 1
 
 
+@njit(cache=True, inline="always")
+def _prefetch_pair(params, aux, pair_grad, g, q):
+    """Prefetch Gaussian ``g``'s parameter and auxiliary records and gradient row ``q``."""
+    prefetch_row(params, g)
+    prefetch_at(params, g, NPARAM - 1)
+    prefetch_row(aux, g)
+    prefetch_at(aux, g, 12)
+    prefetch_w(pair_grad, q)
+
+
 @njit(parallel=True, cache=True, error_model="numpy")
 def backward_tiles(params, aux, pmask, tile_off, gids, gslot, cst, width, height, xs, ys, bg, T_final,
                    last, d1, d2, g_rgb, g_depth, g_normal, g_alpha, g_dist, sel, pair_grad,
@@ -819,25 +829,40 @@ def backward_tiles(params, aux, pmask, tile_off, gids, gslot, cst, width, height
         # entries behind the last contributor of every selected pixel touch none of them
         for j in range(start + maxlast, end):
             pair_used[gslot[j]] = 0
+        # pass 1: the entries (back to front) whose mask meets a selected pixel; sampling leaves
+        # many pairs with none, so the prefetch below runs PREFETCH *visited* pairs ahead
+        visit = np.empty(maxlast, np.int64)
+        masks = np.empty((maxlast, 4), np.uint64)
+        nv = 0
+        for j in range(start + maxlast - 1, start - 1, -1):
+            a0 = pmask[j, 0] & s0
+            a1 = pmask[j, 1] & s1m
+            a2 = pmask[j, 2] & s2m
+            a3 = pmask[j, 3] & s3m
+            if (a0 | a1 | a2 | a3) == 0:
+                pair_used[gslot[j]] = 0
+                continue
+            pair_used[gslot[j]] = 1
+            visit[nv] = j
+            masks[nv, 0] = a0
+            masks[nv, 1] = a1
+            masks[nv, 2] = a2
+            masks[nv, 3] = a3
+            nv += 1
+        for k in range(min(PREFETCH, nv)):
+            _prefetch_pair(params, aux, pair_grad, gids[visit[k]], gslot[visit[k]])
         mw = np.zeros(4, np.uint64)
         evals = 0
-        for j in range(start + maxlast - 1, start - 1, -1):
-            if j - PREFETCH >= start:
-                ga = gids[j - PREFETCH]
-                prefetch_row(params, ga)
-                prefetch_at(params, ga, NPARAM - 1)
-                prefetch_row(aux, ga)
-                prefetch_at(aux, ga, 12)
-                prefetch_w(pair_grad, gslot[j - PREFETCH])
+        for k in range(nv):
+            if k + PREFETCH < nv:
+                jp = visit[k + PREFETCH]
+                _prefetch_pair(params, aux, pair_grad, gids[jp], gslot[jp])
+            j = visit[k]
             q = gslot[j]
-            mw[0] = pmask[j, 0] & s0
-            mw[1] = pmask[j, 1] & s1m
-            mw[2] = pmask[j, 2] & s2m
-            mw[3] = pmask[j, 3] & s3m
-            if (mw[0] | mw[1] | mw[2] | mw[3]) == 0:
-                pair_used[q] = 0
-                continue
-            pair_used[q] = 1
+            mw[0] = masks[k, 0]
+            mw[1] = masks[k, 1]
+            mw[2] = masks[k, 2]
+            mw[3] = masks[k, 3]
             g = gids[j]
             m0 = params[g, 0]
             m1 = params[g, 1]

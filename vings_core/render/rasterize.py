@@ -8,6 +8,7 @@ quats, scales, opacities, colours / SH and the camera pose.
 """
 from __future__ import annotations
 
+import threading
 import time
 from dataclasses import dataclass, field
 from typing import Optional, Union
@@ -104,6 +105,36 @@ def _as_numpy(a: ArrayLike, dtype, what: str) -> np.ndarray:
         return np.array(a, dtype=dtype, order="C", copy=True)
     except (TypeError, ValueError, RuntimeError, NotImplementedError) as e:
         raise InputError(f"{what}: cannot convert to a {np.dtype(dtype).name} array ({e})") from None
+
+
+class _Scratch(threading.local):
+    """Per-thread scratch arrays for the backward's per-pair rows, kept between calls.
+
+    At 300k Gaussians the pair rows are ~150 MB: a fresh allocation each backward is a fresh
+    mapping that the kernel zero-fills page by page (~10 ms of CPU), a cost the sampled backward
+    pays in full however few pairs it visits. Every row is written before it is read (rows a
+    pass does not visit are flagged unused), so reuse needs no clearing. Per thread, so
+    concurrent renders never share one; what escapes the backward is copied out.
+    """
+
+    MAX_BYTES = 1 << 30   # a larger request is allocated afresh and not kept
+
+    def __init__(self):
+        self.bufs: dict = {}
+
+    def get(self, name: str, shape: tuple, dtype) -> np.ndarray:
+        dtype = np.dtype(dtype)
+        need = int(np.prod(shape)) * dtype.itemsize
+        if need > self.MAX_BYTES:
+            return np.empty(shape, dtype)
+        buf = self.bufs.get(name)
+        if buf is None or buf.nbytes < need:
+            buf = np.empty(max(need, int(1.25 * (0 if buf is None else buf.nbytes))), np.uint8)
+            self.bufs[name] = buf
+        return buf[:need].view(dtype).reshape(shape)
+
+
+_SCRATCH = _Scratch()
 
 
 def _nchunk() -> int:
@@ -203,8 +234,8 @@ def _backward_numpy(st: _State, g_rgb, g_depth, g_normal, g_alpha, g_dist,
             score = (np.abs(g_rgb).sum(-1) + np.abs(g_depth) + np.abs(g_normal).sum(-1)
                      + np.abs(g_alpha) + np.abs(g_dist)).astype(np.float64)
         K.select_pixels(np.ascontiguousarray(score, dtype=np.float64), float(st.sample_ratio), sel)
-    pair_grad = np.empty((st.nrows, K.NGRAD), dt)
-    pair_used = np.empty(st.nrows, np.uint8)
+    pair_grad = _SCRATCH.get("pair_grad", (st.nrows, K.NGRAD), dt)
+    pair_used = _SCRATCH.get("pair_used", (st.nrows,), np.uint8)
     tile_evals = np.zeros(st.tile_off.shape[0] - 1, np.int64)
     with K.tile_parallel():
         K.backward_tiles(st.params, st.aux, st.pmask, st.tile_off, st.gids, st.gslot,
@@ -213,7 +244,7 @@ def _backward_numpy(st: _State, g_rgb, g_depth, g_normal, g_alpha, g_dist,
                          g_rgb, g_depth, g_normal, g_alpha, g_dist, sel, pair_grad, pair_used,
                          tile_evals)
     K.reduce_pairs(pair_grad, pair_used, st.xstart, st.ntiles)
-    grads = pair_grad[:N]
+    grads = pair_grad[:N].copy()   # the scratch rows are reused by the next backward
     g_bg = np.einsum("hw,hwc->c", st.T_final * sel, g_rgb) if want_bg else None
     st.stats["bwd_raster_ms"] = (time.perf_counter() - t0) * 1e3
     st.stats["bwd_pairs_evaluated"] = int(tile_evals.sum())
