@@ -986,7 +986,7 @@ def test_history_keyframe_with_far_depth_keeps_the_loss_finite():
     T = np.eye(4)
     T[0, 3] = 0.02
     m.add_keyframe(_kf(2, T, d, cam, image=img))
-    assert torch.isfinite(m._history[1]["depth"].float()).all()
+    assert torch.isfinite(m._history.get(1)["depth"].float()).all()
     t = m.train(20)
     assert math.isfinite(t["loss"]) and math.isfinite(t["depth"])
 
@@ -1046,3 +1046,58 @@ def test_non_finite_gaussian_does_not_freeze_its_owner_in_refinement(room_two_vi
     P = m.refine_poses(6, mode="multi")
     assert not np.array_equal(P[f0.stamp_ns], P0[f0.stamp_ns])
     assert all(np.isfinite(P[s]).all() for s in P)
+
+
+def test_history_spilled_to_disk_trains_and_checkpoints_exactly_as_in_memory(room_small, tmp_path):
+    """history_memory_mb bounds the memory of keyframes that left the window: beyond it records go to
+    disk and come back when sampled. Spilling changes nothing: same map, same checkpoint arrays."""
+    cam, frames = room_small
+    maps = []
+    for mb in (1000.0, 0.02):   # 0.02 MB holds one 64x40 record (20 kB)
+        cfg = MapperConfig(points_per_keyframe=400, window_size=1, history_ratio=0.6, iters_per_keyframe=4,
+                           history_memory_mb=mb, spill_dir=str(tmp_path / "spill"))
+        m = Mapper(cfg)
+        for i in range(0, 8, 2):
+            m.add_keyframe(frames[i])
+            m.train()
+        maps.append(m)
+    big, small = maps
+    assert len(small._history) == 3 and small._history.num_spilled >= 2
+    assert small._history.memory_bytes <= 2 * 64 * 40 * 8 and small._history.loaded_total > 0
+    assert big._history.num_spilled == 0
+    _assert_maps_equal(big.gm, small.gm)
+    for m, name in ((big, "big.npz"), (small, "small.npz")):
+        m.save_checkpoint(tmp_path / name)
+    a, b = np.load(tmp_path / "big.npz"), np.load(tmp_path / "small.npz")
+    assert sorted(a.files) == sorted(b.files) and "hist/image" in a.files
+    for k in a.files:
+        if k != "meta":   # the config inside differs (the budget)
+            assert np.array_equal(a[k], b[k]), k
+    spill = list((tmp_path / "spill").glob("vings_history_*/*.npz"))
+    assert spill
+    small.close()
+    assert not any((tmp_path / "spill").glob("vings_history_*/*.npz"))
+
+
+def test_history_store_lost_spill_file_is_reported_and_dropped(tmp_path, caplog):
+    from vings_core.mapping.history import HistoryStore, compact_keyframe
+    cam = _cam(32, 24)
+    store = HistoryStore(0, str(tmp_path))        # budget 0: everything but the last read spills
+    recs = {}
+    for s in (10, 20, 30):
+        kf = _kf(s, np.eye(4), torch.full((24, 32), 2.0 + s), cam,
+                 image=torch.rand(24, 32, 3, generator=torch.Generator().manual_seed(s)))
+        recs[s] = compact_keyframe(kf)
+        store.put(s, recs[s])
+    assert store.num_spilled == 3 and store.memory_bytes == 0 and store.stamps() == [10, 20, 30]
+    for s in (20, 10):
+        got = store.get(s)
+        assert all(torch.equal(got[k], recs[s][k]) for k in ("image", "depth", "inv_depth_var", "valid"))
+        assert got["index"] == recs[s]["index"]
+    next(tmp_path.glob("vings_history_*/kf_30.npz")).write_bytes(b"not an npz")
+    with caplog.at_level("ERROR"):
+        assert store.get(30) is None
+    assert "history keyframe 30" in caplog.text and "damaged" in caplog.text
+    assert 30 not in store and store.stamps() == [10, 20] and store.lost_total == 1
+    store.close()
+    assert not list(tmp_path.glob("vings_history_*"))

@@ -84,6 +84,7 @@ class MapperConfig:
     tau: float = 30.0                  # m: Gaussians whose ID(g) keyframe is nearer stay active
     max_active: int = 400000           # cap on the active (optimised, rendered) set
     passive_memory_mb: float = 1024.0  # host-memory budget of the passive store; beyond: spill to disk
+    history_memory_mb: float = 256.0   # host-memory budget of the history keyframes; beyond: spill
     spill_dir: str = ""                # "" = a private temporary folder
 
     # ---- single-to-multi pose refinement
@@ -127,5 +128,7 @@ class MapperConfig:
             raise ValueError(f"sc_view_floor must be in [0, 1], got {self.sc_view_floor}")
         if self.max_active < 1:
             raise ValueError("max_active must be >= 1")
+        if not (self.passive_memory_mb >= 0 and self.history_memory_mb >= 0):
+            raise ValueError("passive_memory_mb and history_memory_mb must be >= 0 (MB)")
         if len(self.adam_betas) != 2:
             raise ValueError("adam_betas must have 2 values")

@@ -37,6 +37,7 @@ from ..util import NPZ_READ_ERRORS, atomic_write, log
 from . import scores as S
 from .config import MapperConfig
 from .gaussians import ALL_FIELDS, PARAM_FIELDS, GaussianMap, quat_multiply
+from .history import HistoryStore, compact_keyframe, expand_keyframe
 from .lie import se3_exp_safe
 from .init import depth_normals, empty_mask, fill_depth, gaussians_from_pixels, num_to_add, sample_pixels, usable_depth_mask
 from .losses import (accumulation_loss, depth_loss, depth_weight, l1_map, normal_loss, normals_from_depth,
@@ -79,7 +80,8 @@ class Mapper:
         self._aux: dict[int, dict] = {}               # cached per-keyframe masks / weights
         self._pose_adam: dict[int, tuple] = {}        # stamp -> (m (6,), v (6,), steps) of pose refinement
         self._pose_v = np.zeros(7)                    # shared second moment of pose gradients (6,) + its steps
-        self._history: dict[int, dict] = {}           # keyframes that left the window (compact, see _compact)
+        # keyframes that left the window, compact, spilled to disk beyond history_memory_mb
+        self._history = HistoryStore(int(self.cfg.history_memory_mb * 2**20), self.cfg.spill_dir or None)
         self.counters = dict(added=0, deleted=0, pruned=0, nonfinite_grads=0, to_stable=0, to_unstable=0, to_passive=0,
                              from_passive=0, tier_updates=0)
         self.timings = dict(add_s=0.0, train_s=0.0, refine_s=0.0)
@@ -149,7 +151,7 @@ class Mapper:
         if len(self.window) > self.cfg.window_size:
             old = self.window.pop(0)
             if self.cfg.history_ratio > 0:
-                self._history[old.stamp_ns] = _compact(old)
+                self._history.put(old.stamp_ns, compact_keyframe(old))
             self._loss_maps.pop(old.stamp_ns, None)
             self._aux.pop(old.stamp_ns, None)
             slot = self._slots.index(old.stamp_ns)
@@ -270,8 +272,9 @@ class Mapper:
         return {"tier_in": n_back, "tier_out": n_out}
 
     def close(self) -> None:
-        """Remove passive-store spill files (private temporary folder)."""
+        """Remove the passive store's and the history's spill files (private folders)."""
         self.passive.close()
+        self._history.close()
 
     # ---------------------------------------------------------------- checkpoint
     def save_checkpoint(self, path: str | os.PathLike) -> None:
@@ -307,11 +310,12 @@ class Mapper:
                 "camera": self.camera.to_dict() if self.camera is not None else None}
         d["meta"] = np.frombuffer(json.dumps(meta).encode(), dtype=np.uint8)
         d["rng_state"] = self.rng.get_state().numpy()
-        hs = sorted(self._history)
-        d["hist/stamps"] = np.array(hs, dtype=np.int64)
+        hist = sorted(self._history.items(), key=lambda r: r[0])
+        d["hist/stamps"] = np.array([s for s, _ in hist], dtype=np.int64)
         for k in ("image", "depth", "inv_depth_var", "valid"):
-            d[f"hist/{k}"] = np.stack([self._history[s][k].numpy() for s in hs]) if hs else np.zeros((0,))
-        d["hist/index"] = np.array([self._history[s]["index"] for s in hs], dtype=np.int64)
+            d[f"hist/{k}"] = np.stack([r[k].numpy() for _, r in hist]) if hist else np.zeros((0,))
+        d["hist/index"] = np.array([r["index"] for _, r in hist], dtype=np.int64)
+        del hist
         pa = sorted(self._pose_adam)
         d["pose_adam/stamps"] = np.array(pa, dtype=np.int64)
         d["pose_adam/m"] = np.stack([self._pose_adam[s][0] for s in pa]) if pa else np.zeros((0, 6))
@@ -361,9 +365,9 @@ class Mapper:
                     m._loss_maps[kf.stamp_ns] = torch.from_numpy(lm)
             m.rng.set_state(torch.from_numpy(z["rng_state"]))
             for j, s_ in enumerate(z["hist/stamps"]):
-                m._history[int(s_)] = {k: torch.from_numpy(np.array(z[f"hist/{k}"][j]))
-                                       for k in ("image", "depth", "inv_depth_var", "valid")}
-                m._history[int(s_)]["index"] = int(z["hist/index"][j])
+                rec = {k: torch.from_numpy(np.array(z[f"hist/{k}"][j]))
+                       for k in ("image", "depth", "inv_depth_var", "valid")}
+                m._history.put(int(s_), {**rec, "index": int(z["hist/index"][j])})
             if "pose_adam/v_shared" in z:
                 m._pose_v = np.array(z["pose_adam/v_shared"], dtype=np.float64)
             m._pose_adam = {int(s): (np.array(a), np.array(b), int(c)) for s, a, b, c in
@@ -629,11 +633,14 @@ class Mapper:
         if float(torch.rand((), generator=self.rng)) >= cfg.history_ratio:
             return None
         cur = self._poses[self.window[-1].stamp_ns][:3, 3]
-        cand = [s for s in self._history if np.linalg.norm(self._poses[s][:3, 3] - cur) < cfg.tau]
-        if not cand:
+        stamps = self._history.stamps()
+        pos = np.stack([self._poses[s][:3, 3] for s in stamps])
+        cand = np.flatnonzero(np.linalg.norm(pos - cur, axis=1) < cfg.tau)
+        if not len(cand):
             return None
-        s = cand[int(torch.randint(len(cand), (), generator=self.rng))]
-        return _expand(self._history[s], s, self._poses[s], self.camera)
+        s = stamps[int(cand[int(torch.randint(len(cand), (), generator=self.rng))])]
+        rec = self._history.get(s)     # None: its spill file was lost (reported); skip this turn
+        return None if rec is None else expand_keyframe(rec, s, self._poses[s], self.camera)
 
     def _train_step(self) -> dict:
         cfg = self.cfg
@@ -864,25 +871,6 @@ class Mapper:
         else:
             # single: only the cameras move; the owners' passive Gaussians stay too
             self.passive.resnapshot({s: self._poses[s] for s in deltas})
-
-
-def _compact(kf: Keyframe) -> dict:
-    """A keyframe that left the window, kept for history training: RGB as uint8 (the inputs are 8-bit
-    images), depth and inverse-depth variance as float16, validity as bool (~0.6 MB at 376x240)."""
-    return {"image": torch.round(kf.image.clamp(0, 1) * 255).to(torch.uint8),
-            # (a depth beyond float16's range stays "far", not inf: inf / inf in the depth loss is NaN)
-            "depth": kf.depth.clamp(max=65504.0).to(torch.float16),
-            # float16 overflows above 65504 (the front end sends up to 1e10 for "unknown"): clamp, a
-            # standard deviation of 256 1/m is as unusable as infinity
-            "inv_depth_var": kf.inv_depth_var.clamp(0, 65504.0).to(torch.float16),
-            "valid": kf.valid.clone(), "index": int(kf.index)}
-
-
-def _expand(rec: dict, stamp: int, T_wc: np.ndarray, camera: CameraModel) -> Keyframe:
-    return Keyframe(stamp_ns=int(stamp), image=rec["image"].to(torch.float32) / 255.0,
-                    T_wc=torch.from_numpy(np.array(T_wc)), depth=rec["depth"].to(torch.float32),
-                    inv_depth_var=rec["inv_depth_var"].to(torch.float32), valid=rec["valid"], camera=camera,
-                    index=rec["index"])
 
 
 def _check_pose(T, what: str) -> np.ndarray:

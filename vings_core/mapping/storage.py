@@ -68,6 +68,59 @@ def active_split(dist: torch.Tensor, tau: float, max_active: int) -> torch.Tenso
     return keep
 
 
+# ----------------------------------------------------------------------------- spill folder
+
+
+class SpillFolder:
+    """A private folder for spilled ``.npz`` files: inside ``parent`` when given (created at once,
+    so a bad ``mapping.spill_dir`` is reported up front), else a temporary folder made on first
+    use. Stores sharing a parent never read, overwrite or delete each other's files; :meth:`close`
+    deletes the folder."""
+
+    def __init__(self, parent: Optional[str], prefix: str):
+        self.prefix = prefix
+        self._dir: Optional[Path] = None
+        if parent:
+            try:
+                Path(parent).mkdir(parents=True, exist_ok=True)
+                self._dir = Path(tempfile.mkdtemp(prefix=prefix, dir=parent))
+            except OSError as e:
+                raise ConfigError(f"mapping.spill_dir {parent!r}: cannot create a folder "
+                                  f"there ({e.strerror or e})") from None
+
+    def path(self, name: str) -> Path:
+        if self._dir is None:
+            self._dir = Path(tempfile.mkdtemp(prefix=self.prefix))
+        return self._dir / name
+
+    def write(self, name: str, arrays: dict) -> Path:
+        """Write ``arrays`` to ``name`` atomically; returns its path."""
+        path = self.path(name)
+
+        def _w(tmp: str) -> None:
+            with open(tmp, "wb") as f:
+                np.savez(f, **arrays)
+        atomic_write(path, _w)
+        return path
+
+    @staticmethod
+    def read(path: Optional[Path], keys, what: str) -> dict:
+        """The arrays ``keys`` of a spilled file; InputError naming ``what`` and the file when it
+        is missing or damaged."""
+        if path is None or not path.exists():
+            raise InputError(f"{what} file missing: {path}")
+        try:
+            with np.load(path) as z:
+                return {k: z[k] for k in keys}
+        except NPZ_READ_ERRORS as e:
+            raise InputError(f"{what} file {path} is damaged ({type(e).__name__}: {e})") from None
+
+    def close(self) -> None:
+        if self._dir is not None and self._dir.exists():
+            shutil.rmtree(self._dir, ignore_errors=True)
+        self._dir = None
+
+
 # ----------------------------------------------------------------------------- passive store
 
 
@@ -97,23 +150,12 @@ class PassiveStore:
     spill_dir: Optional[str] = None
     chunks: list = field(default_factory=list)
     _ids: itertools.count = field(default_factory=itertools.count)
-    _own_dir: bool = False
     spilled_total: int = 0                  # number of chunk writes so far
     loaded_total: int = 0                   # number of chunk reads so far
     lost_total: int = 0                     # Gaussians of chunk files found missing or corrupt
 
     def __post_init__(self) -> None:
-        # each store spills into a private folder (inside ``spill_dir`` when given), so stores
-        # sharing a ``spill_dir`` never read, overwrite or delete each other's files
-        self._dir: Optional[Path] = None
-        if self.spill_dir:
-            try:
-                Path(self.spill_dir).mkdir(parents=True, exist_ok=True)
-                self._dir = Path(tempfile.mkdtemp(prefix="vings_passive_", dir=self.spill_dir))
-            except OSError as e:
-                raise ConfigError(f"mapping.spill_dir {self.spill_dir!r}: cannot create a folder "
-                                  f"there ({e.strerror or e})") from None
-            self._own_dir = True
+        self._folder = SpillFolder(self.spill_dir, "vings_passive_")
 
     # ---------------------------------------------------------------- accounting
     @property
@@ -252,32 +294,16 @@ class PassiveStore:
     def close(self) -> None:
         """Delete spill files (and the private spill folder)."""
         self.clear()
-        if self._own_dir and self._dir is not None and self._dir.exists():
-            shutil.rmtree(self._dir, ignore_errors=True)
-            self._dir = None
-            self._own_dir = False
+        self._folder.close()
 
     # ---------------------------------------------------------------- spill / load
-    def _spill_dir(self) -> Path:
-        if self._dir is None:
-            self._dir = Path(tempfile.mkdtemp(prefix="vings_passive_"))
-            self._own_dir = True
-        return self._dir
-
     def _spill_if_needed(self) -> None:
         for c in self.chunks:
             if self.memory_bytes <= self.memory_budget_bytes:
                 break
             if c.arrays is None:
                 continue
-            path = self._spill_dir() / f"chunk_{c.cid:08d}.npz"
-            arrays = c.arrays
-
-            def _w(tmp: str, arrays=arrays) -> None:
-                with open(tmp, "wb") as f:
-                    np.savez(f, **arrays)
-            atomic_write(path, _w)
-            c.path = path
+            c.path = self._folder.write(f"chunk_{c.cid:08d}.npz", c.arrays)
             c.arrays = None
             self.spilled_total += 1
 
@@ -294,21 +320,13 @@ class PassiveStore:
     def _load(self, c: _Chunk) -> dict:
         if c.arrays is not None:
             return c.arrays
-        if c.path is None or not c.path.exists():
-            raise InputError(f"passive Gaussian chunk file missing: {c.path}")
-        try:
-            with np.load(c.path) as z:
-                arrays = {k: z[k] for k in ALL_FIELDS}
-        except NPZ_READ_ERRORS as e:
-            raise InputError(f"passive Gaussian chunk file {c.path} is damaged "
-                             f"({type(e).__name__}: {e})") from None
+        arrays = SpillFolder.read(c.path, ALL_FIELDS, "passive Gaussian chunk")
         self.loaded_total += 1
         return arrays
 
     def __del__(self) -> None:  # best effort: private temp folders do not outlive the store
         try:
-            if self._own_dir:
-                self.close()
+            self.close()
         except Exception:
             pass
 

@@ -110,7 +110,7 @@ def _as_numpy(a: ArrayLike, dtype, what: str) -> np.ndarray:
 class _Scratch(threading.local):
     """Per-thread scratch arrays for the backward's per-pair rows, kept between calls.
 
-    At 300k Gaussians the pair rows are ~150 MB: a fresh allocation each backward is a fresh
+    At 300k Gaussians the pair rows are ~27 MB: a fresh allocation each backward is a fresh
     mapping that the kernel zero-fills page by page (~10 ms of CPU), a cost the sampled backward
     pays in full however few pairs it visits. Every row is written before it is read (rows a
     pass does not visit are flagged unused), so reuse needs no clearing. Per thread, so
