@@ -220,6 +220,21 @@ def test_kitti_loader(tmp_path, image_dir, labelled, poses):
         assert np.allclose(src.ground_truth.poses[:, :3, 3], [[0, 0, i] for i in range(4)])
 
 
+def test_kitti_image_2_with_calib_file_still_moves_ground_truth_to_camera_2(tmp_path):
+    # --calib replaces the intrinsics; the lever arm to camera 0 comes from the sequence's calib.txt
+    root = make_kitti(tmp_path / "06", n=3, image_dir="image_2", color=True)
+    calib = tmp_path / "cam.yaml"
+    h, w = texture(0).shape[:2]
+    calib.write_text(f"camera: {{width: {w}, height: {h}, fx: {FX}, fy: {FX}, cx: {CX}, cy: {CY}}}\n")
+    src = open_source(root, SourceOptions(calib_file=str(calib)))
+    t = np.linalg.solve(np.array([[FX, 0, CX], [0, FX, CY], [0, 0, 1]]), [2.5, 0.1, 0.005])
+    assert np.allclose(src.ground_truth.poses[:, :3, 3], np.array([[0, 0, i] for i in range(3)]) - t)
+    (root / "calib.txt").write_text(f"P0: {FX} 0 {CX} 0 0 {FX} {CY} 0 0 0 1 0\n")
+    src = open_source(root, SourceOptions(calib_file=str(calib)))
+    assert np.allclose(src.ground_truth.poses[:, :3, 3], [[0, 0, i] for i in range(3)])
+    assert any("no P2 to move the camera-0 ground truth" in w for w in src.warnings)
+
+
 def test_kitti_bad_inputs(tmp_path):
     root = make_kitti(tmp_path / "07", n=3, times=False)
     src = open_source(root)

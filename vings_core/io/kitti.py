@@ -8,7 +8,8 @@ Layout (``PATH`` is the sequence folder, e.g. ``dataset/sequences/06``)::
     poses.txt | poses/NN.txt | ../../poses/NN.txt   row-major 3x4 [R|t] of camera 0 (optional)
 
 Images are rectified (no distortion). Ground truth is the pose of camera 0 in the frame of camera 0
-at frame 0; with ``image_2`` it is moved to camera 2 using P2's baseline. ``gt_frame == 'camera'``.
+at frame 0; with ``image_2`` it is moved to camera 2 using P2's baseline from ``calib.txt`` (also
+when ``--calib`` gives the intrinsics). ``gt_frame == 'camera'``.
 There is no IMU.
 """
 from __future__ import annotations
@@ -146,7 +147,13 @@ class KittiSource(FileFramesSource):
                 raise InputError(f"{self.options.calib_file}: no camera calibration in this file")
             raw = check_size(parts.camera, w, h, str(files[0]), self._warn)
             calib = parts.to_calibration(raw)
+            # the lever arm to camera 0 (ground truth) still comes from the sequence's calib.txt
             P_cam = None
+            if cam != 0 and (self.path / "calib.txt").is_file():
+                P_cam = read_kitti_calib(self.path / "calib.txt").get(cam)
+            if cam != 0 and P_cam is None:
+                self._warn(f"{self.path / 'calib.txt'}: no P{cam} to move the camera-0 ground truth "
+                           f"to camera {cam}: it stays at camera 0 (~6 cm off on KITTI)")
         else:
             Ps = read_kitti_calib(self.path / "calib.txt")
             if cam not in Ps:
