@@ -192,6 +192,7 @@ class BagSpec:
     zero_header: bool = False
     gyro_cov0: float = 0.0          # -1 marks the gyro as unavailable
     info_scale: int = 1             # CameraInfo of a sensor this many times larger, binned by it
+    R: Optional[Sequence[float]] = None   # CameraInfo rectification rotation (9 values; None = I)
 
 
 def image_payload(i: int, encoding: str) -> tuple[np.ndarray, np.ndarray]:
@@ -278,7 +279,7 @@ def make_bag(path: Path, spec: BagSpec, storage: str = "mcap") -> Path:
         roi = T["sensor_msgs/msg/RegionOfInterest"](x_offset=0, y_offset=0, height=0, width=0,
                                                      do_rectify=False)
         kw = dict(D=np.array(spec.D, float), K=K, R=np.eye(3).reshape(-1), P=P) if ros1 else \
-            dict(d=np.array(spec.D, float), k=K, r=np.eye(3).reshape(-1), p=P)
+            dict(d=np.array(spec.D, float), k=K, r=np.eye(3).reshape(-1) if spec.R is None else np.array(spec.R, float), p=P)
         for s in img_st[:2]:
             m = T["sensor_msgs/msg/CameraInfo"](header=hdr(s, "cam0"), height=H * b, width=W * b,
                                                 distortion_model=spec.distortion_model,

@@ -184,6 +184,32 @@ def test_rectified_image_topic_takes_the_projection_matrix(tmp_path):
     assert rect.calibration.camera == c            # no undistortion, no change of intrinsics
 
 
+def test_rectified_frame_turns_the_extrinsic_by_the_rectification_rotation(tmp_path):
+    """image_rect lives in the rectified frame (x_rect = R x_raw); T_bc describes the raw camera, so
+    the source's extrinsic (used to map body ground truth to the camera) becomes T_bc [R^T | 0]."""
+    from vings_core.geometry import np_so3_exp
+    R = np_so3_exp(np.radians(3.0) * np.array([0.2, 1.0, -0.1]) / np.linalg.norm([0.2, 1.0, -0.1]))
+    spec = BagSpec(imu_topics=(), R=tuple(R.reshape(-1)), image_topics={"/cam0/image_rect": "mono8"})
+    p = make_bag(tmp_path / "rect", spec, "mcap")
+    T_bc = np.array([[0, -1, 0, 0.1], [1, 0, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]], dtype=float)
+    (tmp_path / "rect.calib.yaml").write_text(f"T_bc: {T_bc.tolist()}\n")
+    src = open_source(p)
+    want = T_bc.copy()
+    want[:3, :3] = T_bc[:3, :3] @ R.T
+    assert np.allclose(src.calibration.T_bc, want, atol=1e-12)
+    # raw images: the raw camera is the camera, R does not apply
+    p = make_bag(tmp_path / "raw", BagSpec(imu_topics=(), R=tuple(R.reshape(-1))), "mcap")
+    (tmp_path / "raw.calib.yaml").write_text(f"T_bc: {T_bc.tolist()}\n")
+    assert np.array_equal(open_source(p).calibration.T_bc, T_bc)
+    # no extrinsic: said, outputs are in the rectified frame
+    src = open_source(make_bag(tmp_path / "noext", spec, "mcap"))
+    assert any("rectified camera frame" in w for w in src.warnings)
+    bad = make_bag(tmp_path / "bad", BagSpec(imu_topics=(), R=(1, 0, 0, 0, 2, 0, 0, 0, 1),
+                                              image_topics={"/cam0/image_rect": "mono8"}), "mcap")
+    with pytest.raises(InputError, match="camera_info: field r: the rectification matrix is not a rotation"):
+        open_source(bad)
+
+
 def test_unusable_default_ground_truth_topic_is_ignored_with_a_warning(tmp_path):
     p = make_bag(tmp_path / "g", BagSpec(empty_topics=("/ground_truth/pose",), imu_topics=()), "mcap")
     src = open_source(p)                   # nobody asked for it: not an error

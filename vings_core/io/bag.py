@@ -336,11 +336,13 @@ class BagSource(LoaderSource):
             self.calib_source = str(yaml_path)
         camera = parts.camera
         if camera is None and cam_msg is not None:
-            camera = camera_from_camera_info(cam_msg, f"{self.path}:{self.camera_info_topic}",
-                                             is_rectified_topic(self.image_topic))
+            rectified = is_rectified_topic(self.image_topic)
+            camera = camera_from_camera_info(cam_msg, f"{self.path}:{self.camera_info_topic}", rectified)
             self.calib_source = f"{self.camera_info_topic} (CameraInfo)"
             if camera is not None and (camera.width == 0 or camera.height == 0) and first_img is not None:
                 camera = None
+            if camera is not None and rectified:
+                self._rectified_extrinsic(parts, cam_msg)
         has_imu = len(self._imu_st) > 0
         parts.has_imu = has_imu
         parts.imu_rate_hz = self._imu_rate() or parts.imu_rate_hz
@@ -365,6 +367,30 @@ class BagSource(LoaderSource):
             self.calibration = parts.to_calibration(None)
         if first_img is not None:
             self._first_img_dtype = str(first_img.dtype)
+
+    def _rectified_extrinsic(self, parts: CalibParts, cam_msg) -> None:
+        """Rectified images (``image_rect``) live in the rectified frame, turned by CameraInfo's R
+        against the raw camera (``x_rect = R x_raw``) that an extrinsic ``T_bc`` describes; the
+        camera frame of the output (and of ground truth mapped through ``T_bc``) is the rectified
+        one, so ``T_bc`` becomes ``T_bc @ [R^T | 0]``."""
+        where = f"{self.path}:{self.camera_info_topic}: field r"
+        try:
+            R = np.asarray(_field(cam_msg, "r", "R"), dtype=np.float64).reshape(3, 3)
+        except (AttributeError, ValueError):
+            return
+        if not np.any(R) or np.allclose(R, np.eye(3), atol=1e-12):
+            return      # unset (all zeros) or identity: nothing to turn
+        if not (np.all(np.isfinite(R)) and np.allclose(R @ R.T, np.eye(3), atol=1e-6)
+                and np.linalg.det(R) > 0):
+            raise InputError(f"{where}: the rectification matrix is not a rotation: {R.tolist()}")
+        T_raw_rect = np.eye(4)
+        T_raw_rect[:3, :3] = R.T
+        if parts.T_bc is None:
+            self._warn(f"{where}: rectified images turned by {np.degrees(np.arccos(np.clip((np.trace(R) - 1) / 2, -1, 1))):.2f} "
+                       f"deg against the raw camera, and no extrinsic T_bc to apply it to: outputs are in "
+                       f"the rectified camera frame")
+            return
+        parts.T_bc = np.asarray(parts.T_bc, dtype=np.float64) @ T_raw_rect
 
     # -- decoding --------------------------------------------------------------------------------
     def _decode(self, r, conn, raw, stamp: int) -> np.ndarray:
