@@ -210,6 +210,47 @@ def test_rectified_frame_turns_the_extrinsic_by_the_rectification_rotation(tmp_p
         open_source(bad)
 
 
+def test_late_entries_bounds_the_reorder_buffer():
+    from vings_core.io.common import late_entries
+    # time order 0..5 arriving as 1 2 3 4 5 0: with a window of 5 all wait for 0; with 3 it is late
+    arrival = np.array([5, 0, 1, 2, 3, 4])
+    assert not late_entries(arrival, 5).any()
+    assert late_entries(arrival, 3).tolist() == [True, False, False, False, False, False]
+    assert not late_entries(np.arange(10), 0).any()   # in order: nothing ever waits
+    rng = np.random.default_rng(0)
+    for _ in range(20):        # replaying the mask never holds more than the window
+        arr = rng.permutation(60)
+        w = int(rng.integers(0, 8))
+        late = late_entries(arr, w)
+        keep = np.flatnonzero(~late)
+        t_of_pos = {int(a): k for k, a in enumerate(arr)}
+        waiting, nxt, most = set(), 0, 0
+        for pos in range(60):
+            k = t_of_pos[pos]
+            if late[k]:
+                continue
+            waiting.add(k)
+            while nxt < len(keep) and keep[nxt] in waiting:
+                waiting.discard(keep[nxt])
+                nxt += 1
+            most = max(most, len(waiting))
+        assert most <= w and nxt == len(keep)
+
+
+def test_image_far_out_of_order_is_dropped_and_the_buffer_stays_bounded(tmp_path, monkeypatch):
+    from vings_core.io import bag as bag_mod
+    monkeypatch.setattr(bag_mod, "REORDER_WINDOW", 3)
+    # header stamps: images 1..9 in order, then image 0 (stamped first) recorded last
+    st = [T0 + (i + 1) * 50_000_000 for i in range(9)] + [T0]
+    src = open_source(make_bag(tmp_path / "late", BagSpec(imu_topics=(), image_stamps=st, n_images=10), "mcap"))
+    assert any("1 image(s) recorded more than 3 images after" in w for w in src.warnings)
+    assert src.frame_stamps().tolist() == st[:9]
+    assert [f.stamp_ns for f in src.frames()] == st[:9]
+    monkeypatch.setattr(bag_mod, "REORDER_WINDOW", 9)     # room to wait: nothing dropped
+    src = open_source(make_bag(tmp_path / "ok", BagSpec(imu_topics=(), image_stamps=st, n_images=10), "mcap"))
+    assert [f.stamp_ns for f in src.frames()] == sorted(st)
+
+
 def test_unusable_default_ground_truth_topic_is_ignored_with_a_warning(tmp_path):
     p = make_bag(tmp_path / "g", BagSpec(empty_topics=("/ground_truth/pose",), imu_topics=()), "mcap")
     src = open_source(p)                   # nobody asked for it: not an error

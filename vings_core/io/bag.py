@@ -33,7 +33,7 @@ from ..types import CameraModel, Frame
 from .base import SourceOptions
 from .calib_yaml import (CalibParts, camera_info_intrinsics, distortion_model_name, is_rectified_topic,
                          make_camera, read_calibration_parts, rectified_camera_matrix)
-from .common import LoaderSource, check_size, order_stamps
+from .common import LoaderSource, check_size, late_entries, order_stamps
 from .image_codec import decode_compressed, decode_image
 
 IMAGE = "sensor_msgs/msg/Image"
@@ -116,6 +116,11 @@ def pose_of(msg, msgtype: str) -> np.ndarray:
     T[:3, :3] = np_quat_to_rotmat(qq / n) if n > 1e-9 else np.full((3, 3), np.nan)
     T[:3, 3] = [t.x, t.y, t.z]
     return T
+
+
+# images whose header stamps are out of recording order wait in a buffer of at most this many
+# (raw messages) to be delivered in time order; an image later than that is dropped, with a warning
+REORDER_WINDOW = 256
 
 
 class BagSource(LoaderSource):
@@ -297,6 +302,12 @@ class BagSource(LoaderSource):
         st = np.asarray(img_st, dtype=np.int64)
         idx = order_stamps(st, f"{self.path}:{self.image_topic}", self._warn)
         idx = idx[: self._limit(len(idx))]
+        late = late_entries(idx, REORDER_WINDOW)
+        if late.any():
+            self._warn(f"{self.path}:{self.image_topic}: {int(late.sum())} image(s) recorded more than "
+                       f"{REORDER_WINDOW} images after later-stamped ones (header stamps far out of "
+                       f"order); dropped, e.g. the one stamped {int(st[idx[late][0]])} ns")
+            idx = idx[~late]
         self._stamps = st[idx]
         self._pos = {int(s): i for i, s in enumerate(self._stamps)}
 
@@ -420,10 +431,12 @@ class BagSource(LoaderSource):
                 if i is None or done[i]:
                     continue  # dropped duplicate, or beyond max_frames
                 done[i] = True
-                pending[i] = (self._decode(r, conn, raw, s), s)
+                # kept raw until its turn (images that arrive early wait, at most REORDER_WINDOW:
+                # the first read dropped the ones that would need more)
+                pending[i] = (conn, raw, s)
                 while nxt in pending:
-                    img, s2 = pending.pop(nxt)
-                    yield self._deliver(img, s2, f"{self.path}:{conn.topic} @ {s2} ns")
+                    c2, raw2, s2 = pending.pop(nxt)
+                    yield self._deliver(self._decode(r, c2, raw2, s2), s2, f"{self.path}:{c2.topic} @ {s2} ns")
                     nxt += 1
                 if nxt >= n:
                     return

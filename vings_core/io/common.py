@@ -39,6 +39,35 @@ def order_stamps(stamps: np.ndarray, what: str, warn: Callable[[str], None]) -> 
     return order[keep]
 
 
+def late_entries(arrival: np.ndarray, window: int) -> np.ndarray:
+    """Bool mask of entries a reorder buffer of ``window`` entries cannot deliver in order.
+
+    ``arrival[k]``: position in the file of the ``k``-th entry in time order. Reading the file in
+    order and delivering in time order, an entry that arrives while ``window`` later-stamped ones
+    already wait cannot be waited for any longer: it is marked (dropped), and the ones behind it go
+    on. Replaying this mask while reading keeps at most ``window`` entries pending.
+    """
+    n = len(arrival)
+    dropped = np.zeros(n, dtype=bool)
+    arrived = np.zeros(n, dtype=bool)
+    nxt = 0
+    pending = 0
+    for k in np.argsort(np.asarray(arrival), kind="stable").tolist():
+        if k < nxt:
+            continue            # passed over already (marked dropped when it blocked)
+        arrived[k] = True
+        pending += 1
+        while True:
+            while nxt < n and (arrived[nxt] or dropped[nxt]):
+                pending -= int(arrived[nxt])
+                nxt += 1
+            if pending <= window:
+                break
+            dropped[nxt] = True     # the entry everything waits for is too late
+            nxt += 1
+    return dropped
+
+
 def read_table(path: Path, min_cols: int, what: str, sep: Optional[str] = None,
                stamp_in_seconds: bool = False, n_numeric: Optional[int] = None
                ) -> tuple[np.ndarray, np.ndarray, list[list[str]]]:
