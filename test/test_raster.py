@@ -541,16 +541,23 @@ def test_cpu_matches_gsplat():  # pragma: no cover - needs a GPU
     gen = torch.Generator().manual_seed(5)
     up = {"color": torch.randn(H, W, 3, generator=gen), "alpha": torch.randn(H, W, generator=gen),
           "normal": torch.randn(H, W, 3, generator=gen)}
-    outs, grads = {}, {}
+    loss_map = torch.rand(H, W, generator=gen)
+    outs, grads, scores = {}, {}, {}
     for dev in ("cpu", "cuda"):
         leaves = [t.to(dev).clone().requires_grad_(True) for t in g]
         pd = torch.zeros(6, dtype=torch.float64, device=dev, requires_grad=True)
         out = rasterize_2dgs(*leaves, torch.tensor(T_cw, device=dev), cam, pose_delta=pd,
-                             backend="numba" if dev == "cpu" else "gsplat")
+                             loss_map=loss_map.to(dev), backend="numba" if dev == "cpu" else "gsplat")
         sum((getattr(out, k) * u.to(dev)).sum() for k, u in up.items()).backward()
         outs[dev] = {k: getattr(out, k).detach().cpu().double() for k in ("color", "alpha", "normal", "depth")}
         grads[dev] = [t.grad.detach().cpu().double().flatten() for t in leaves + [pd]]
+        scores[dev] = {k: getattr(out, k).cpu().double().flatten()
+                       for k in ("contribution", "error", "pixels_touched", "n_contrib")}
     stats = {}
+    # per-Gaussian scores (the score manager's inputs): same totals, same Gaussians
+    for k in ("contribution", "error", "pixels_touched", "n_contrib"):
+        a, b = scores["cpu"][k], scores["cuda"][k]
+        stats[k] = (float(a @ b / (a.norm() * b.norm())), float(b.sum() / a.sum()))
     for k in ("color", "alpha", "normal"):
         d = (outs["cpu"][k] - outs["cuda"][k]).abs().flatten()
         stats[k] = (float(d.mean()), float(d.quantile(0.999)))
@@ -567,6 +574,9 @@ def test_cpu_matches_gsplat():  # pragma: no cover - needs a GPU
     for name in ("means", "quats", "scales", "opacities", "colors", "pose_delta"):
         cos, ratio = stats[name]
         assert cos > 0.999 and abs(ratio - 1.0) < 0.02, (name, stats)
+    for name in ("contribution", "error", "pixels_touched", "n_contrib"):
+        cos, ratio = stats[name]
+        assert cos > 0.99 and abs(ratio - 1.0) < 0.02, (name, stats)
 
 
 def test_parallel_path_matches_serial_and_reference(monkeypatch):

@@ -477,7 +477,7 @@ def rasterize_2dgs(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tenso
         if gsplat_available():
             return rasterize_gsplat(means, quats, scales, opacities, colors, T, camera,
                                     sh_degree=sh_degree, pose_delta=pose_delta,
-                                    background=background, near=near, far=far)
+                                    background=background, near=near, far=far, loss_map=loss_map)
         if backend == "gsplat":
             raise InputError("rasterize_2dgs: backend='gsplat' needs CUDA and the gsplat package")
     if means.is_cuda:
