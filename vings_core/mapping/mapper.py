@@ -60,10 +60,11 @@ class Mapper:
         self.cfg.validate()
         self.device = torch.device(device)
         if self.device.type != "cpu":
-            # the CUDA route (gsplat) gives no per-Gaussian contribution/error scores and no sampled
-            # backward: the score manager would freeze every Gaussian
-            raise ConfigError(f"Mapper(device={device!r}): the mapper runs on the CPU rasterizer only "
-                              "(its score manager needs per-Gaussian scores the gsplat route lacks)")
+            # the renderer has a CUDA route (gsplat), but the mapper's sparse optimiser, SSIM and
+            # sampled backward are CPU (numba) kernels
+            raise ConfigError(f"Mapper(device={device!r}): the mapper runs on the CPU only (its optimiser, "
+                              "loss and sampled-backward kernels are numba); render a saved map on the GPU "
+                              "with vings_core.render.rasterize_2dgs instead")
         self.gm = GaussianMap.empty(self.cfg.sh_degree, self.cfg.window_size, self.device)
         self._slots: list[int] = [-1] * self.cfg.window_size   # window keyframe stamp per score slot
         self.passive = PassiveStore(int(self.cfg.passive_memory_mb * 2**20), self.cfg.spill_dir or None)
