@@ -472,23 +472,27 @@ def bin_tiles(order, bbox, aux, ntiles, width, height, nchunk):
 
 
 @njit(parallel=True, cache=True)
-def reduce_pairs(buf, used, xstart, ntiles):
-    """Per-Gaussian sums of the per-pair rows, in place (row layout: :func:`bin_tiles`).
+def reduce_pairs(buf, used, xstart, ntiles, out):
+    """Per-Gaussian sums of the per-pair rows (row layout: :func:`bin_tiles`).
 
-    Row ``g < N`` of ``buf`` becomes the sum of Gaussian ``g``'s rows (row ``g``, then its extra
-    rows ``N + xstart[g] ...``) that have ``used[q] != 0`` (every row when ``used`` is empty);
-    rows not used are never read, so they may hold garbage. Gaussians without tiles get zeros."""
+    Row ``g`` of ``out`` (``(N, k)``; may be ``buf`` itself: in place) becomes the sum of Gaussian
+    ``g``'s rows of ``buf`` (row ``g``, then its extra rows ``N + xstart[g] ...``) that have
+    ``used[q] != 0`` (every row when ``used`` is empty); rows not used are never read, so they may
+    hold garbage. Gaussians without tiles get zeros."""
     n = ntiles.shape[0]
     k = buf.shape[1]
     every = used.shape[0] == 0
     for g in prange(n):
         if ntiles[g] == 0 or not (every or used[g] != 0):
             for c in range(k):
-                buf[g, c] = 0
+                out[g, c] = 0
+        else:
+            for c in range(k):
+                out[g, c] = buf[g, c]
         for q in range(n + xstart[g], n + xstart[g + 1]):
             if every or used[q] != 0:
                 for c in range(k):
-                    buf[g, c] += buf[q, c]
+                    out[g, c] += buf[q, c]
 
 
 # ------------------------------------------------------------------------------ forward

@@ -114,7 +114,7 @@ class _Scratch(threading.local):
     mapping that the kernel zero-fills page by page (~10 ms of CPU), a cost the sampled backward
     pays in full however few pairs it visits. Every row is written before it is read (rows a
     pass does not visit are flagged unused), so reuse needs no clearing. Per thread, so
-    concurrent renders never share one; what escapes the backward is copied out.
+    concurrent renders never share one; the per-Gaussian sums go to a fresh array.
     """
 
     MAX_BYTES = 1 << 30   # a larger request is allocated afresh and not kept
@@ -196,7 +196,7 @@ def _forward_numpy(st: _State, params: np.ndarray, bg: np.ndarray, loss: Optiona
     out_count = np.empty((H, W), np.int32)
     out_d1 = np.empty((H, W), dt)
     out_d2 = np.empty((H, W), dt)
-    pair_stats = np.empty((nrows, K.NSTAT), dt)
+    pair_stats = _SCRATCH.get("pair_stats", (nrows, K.NSTAT), dt)   # reduced below
     pmask = np.empty((npair, 4), np.uint64)
     ntile = tile_off.shape[0] - 1
     tile_evals = np.zeros(ntile, np.int64)
@@ -206,8 +206,8 @@ def _forward_numpy(st: _State, params: np.ndarray, bg: np.ndarray, loss: Optiona
         K.forward_tiles(params, aux, pbox, tile_off, gids, gslot, cst, W, H, xs, ys, bg, loss_arr,
                         has_loss, out_rgb, out_depth, out_normal, out_alpha, out_dist, out_T,
                         out_last, out_count, out_d1, out_d2, pair_stats, pmask, tile_evals)
-    K.reduce_pairs(pair_stats, np.empty(0, np.uint8), xstart, ntiles)
-    scores = pair_stats[:N]
+    scores = np.empty((N, K.NSTAT), dt)
+    K.reduce_pairs(pair_stats, np.empty(0, np.uint8), xstart, ntiles, scores)
     st.params, st.aux, st.bg = params, aux, bg
     st.tile_off, st.gids, st.xstart, st.gslot = tile_off, gids, xstart, gslot
     st.pmask, st.ntiles, st.nrows = pmask, ntiles, nrows
@@ -243,8 +243,9 @@ def _backward_numpy(st: _State, g_rgb, g_depth, g_normal, g_alpha, g_dist,
                          np.arange(H, dtype=dt), st.bg, st.T_final, st.last, st.d1, st.d2,
                          g_rgb, g_depth, g_normal, g_alpha, g_dist, sel, pair_grad, pair_used,
                          tile_evals)
-    K.reduce_pairs(pair_grad, pair_used, st.xstart, st.ntiles)
-    grads = pair_grad[:N].copy()   # the scratch rows are reused by the next backward
+    # summed straight into a fresh array: the scratch rows are reused by the next backward
+    grads = np.empty((N, K.NGRAD), dt)
+    K.reduce_pairs(pair_grad, pair_used, st.xstart, st.ntiles, grads)
     g_bg = np.einsum("hw,hwc->c", st.T_final * sel, g_rgb) if want_bg else None
     st.stats["bwd_raster_ms"] = (time.perf_counter() - t0) * 1e3
     st.stats["bwd_pairs_evaluated"] = int(tile_evals.sum())
