@@ -242,11 +242,22 @@ def test_image_far_out_of_order_is_dropped_and_the_buffer_stays_bounded(tmp_path
     monkeypatch.setattr(bag_mod, "REORDER_WINDOW", 3)
     # header stamps: images 1..9 in order, then image 0 (stamped first) recorded last
     st = [T0 + (i + 1) * 50_000_000 for i in range(9)] + [T0]
-    src = open_source(make_bag(tmp_path / "late", BagSpec(imu_topics=(), image_stamps=st, n_images=10), "mcap"))
+    late_bag = make_bag(tmp_path / "late", BagSpec(imu_topics=(), image_stamps=st, n_images=10), "mcap")
+    src = open_source(late_bag)
     assert any("1 image(s) recorded more than 3 images after" in w for w in src.warnings)
     assert src.frame_stamps().tolist() == st[:9]
-    assert [f.stamp_ns for f in src.frames()] == st[:9]
-    monkeypatch.setattr(bag_mod, "REORDER_WINDOW", 9)     # room to wait: nothing dropped
+    most = []
+    real_decode = bag_mod.BagSource._decode
+
+    def watch(self, r, conn, raw, stamp):      # delivered images decode one by one at their turn
+        most.append(stamp)
+        return real_decode(self, r, conn, raw, stamp)
+    monkeypatch.setattr(bag_mod.BagSource, "_decode", watch)
+    assert [f.stamp_ns for f in src.frames()] == st[:9] and most == st[:9]
+    # max_frames counts delivered frames: the late one does not take a place
+    src = open_source(late_bag, SourceOptions(max_frames=4))
+    assert src.frame_stamps().tolist() == st[:4]
+    monkeypatch.setattr(bag_mod, "REORDER_WINDOW", 10)     # room to wait: nothing dropped
     src = open_source(make_bag(tmp_path / "ok", BagSpec(imu_topics=(), image_stamps=st, n_images=10), "mcap"))
     assert [f.stamp_ns for f in src.frames()] == sorted(st)
 

@@ -233,6 +233,12 @@ def test_kitti_image_2_with_calib_file_still_moves_ground_truth_to_camera_2(tmp_
     src = open_source(root, SourceOptions(calib_file=str(calib)))
     assert np.allclose(src.ground_truth.poses[:, :3, 3], [[0, 0, i] for i in range(3)])
     assert any("no P2 to move the camera-0 ground truth" in w for w in src.warnings)
+    (root / "calib.txt").write_text("P0: 1 2 3\n")          # damaged: --calib still opens it
+    src = open_source(root, SourceOptions(calib_file=str(calib)))
+    assert any("P0 needs 12 numbers" in w for w in src.warnings) and src.ground_truth is not None
+    (root / "poses.txt").unlink()                            # no ground truth: nothing to move
+    src = open_source(root, SourceOptions(calib_file=str(calib)))
+    assert src.ground_truth is None and not any("calib.txt" in w for w in src.warnings)
 
 
 def test_kitti_bad_inputs(tmp_path):

@@ -1069,13 +1069,21 @@ def test_history_spilled_to_disk_trains_and_checkpoints_exactly_as_in_memory(roo
     for m, name in ((big, "big.npz"), (small, "small.npz")):
         m.save_checkpoint(tmp_path / name)
     a, b = np.load(tmp_path / "big.npz"), np.load(tmp_path / "small.npz")
-    assert sorted(a.files) == sorted(b.files) and "hist/image" in a.files
+    assert sorted(a.files) == sorted(b.files) and len(a["hist/stamps"]) == 3
     for k in a.files:
         if k != "meta":   # the config inside differs (the budget)
             assert np.array_equal(a[k], b[k]), k
+    # saving read the spilled records without bringing them back into memory
+    assert small._history.memory_bytes <= 2 * 64 * 40 * 8
+    back = Mapper.load_checkpoint(tmp_path / "small.npz")
+    assert back._history.stamps() == big._history.stamps()
+    for s in big._history.stamps():
+        r1, r2 = big._history.get(s), back._history.get(s)
+        assert r1["index"] == r2["index"] and all(torch.equal(r1[k], r2[k]) for k in ("image", "depth", "valid"))
     spill = list((tmp_path / "spill").glob("vings_history_*/*.npz"))
     assert spill
-    small.close()
+    for m in (small, back, big):
+        m.close()
     assert not any((tmp_path / "spill").glob("vings_history_*/*.npz"))
 
 
@@ -1101,3 +1109,24 @@ def test_history_store_lost_spill_file_is_reported_and_dropped(tmp_path, caplog)
     assert 30 not in store and store.stamps() == [10, 20] and store.lost_total == 1
     store.close()
     assert not list(tmp_path.glob("vings_history_*"))
+
+
+def test_history_store_failed_spill_keeps_the_record_in_memory(tmp_path, monkeypatch, caplog):
+    from vings_core.mapping import storage
+    from vings_core.mapping.history import HistoryStore, compact_keyframe
+    cam = _cam(32, 24)
+    store = HistoryStore(0, str(tmp_path))
+    rec = compact_keyframe(_kf(7, np.eye(4), torch.full((24, 32), 2.0), cam))
+
+    def full(*a, **k):
+        raise OSError(28, "No space left on device")
+    monkeypatch.setattr(storage.SpillFolder, "write", full)
+    with caplog.at_level("WARNING"):
+        store.put(7, rec)
+    assert "cannot spill" in caplog.text and store.num_spilled == 0
+    assert store.memory_bytes == 32 * 24 * 8 and torch.equal(store.get(7)["image"], rec["image"])
+    monkeypatch.undo()
+    store.put(8, rec)          # the disk is back: both spill now
+    assert store.num_spilled == 2 and store.memory_bytes == 0
+    assert torch.equal(store.get(7)["depth"], rec["depth"])
+    store.close()

@@ -27,7 +27,7 @@ from typing import Iterator, Optional
 import numpy as np
 
 from ..errors import InputError
-from ..geometry import np_quat_to_rotmat
+from ..geometry import np_project_rotation, np_quat_to_rotmat
 from ..trajectory_io import sec_nsec_to_ns
 from ..types import CameraModel, Frame
 from .base import SourceOptions
@@ -119,7 +119,7 @@ def pose_of(msg, msgtype: str) -> np.ndarray:
 
 
 # images whose header stamps are out of recording order wait in a buffer of at most this many
-# (raw messages) to be delivered in time order; an image later than that is dropped, with a warning
+# (raw messages, counting the one just read) to be delivered in time order; a later image is dropped, warned
 REORDER_WINDOW = 256
 
 
@@ -301,13 +301,14 @@ class BagSource(LoaderSource):
         # frames: sorted, de-duplicated, limited
         st = np.asarray(img_st, dtype=np.int64)
         idx = order_stamps(st, f"{self.path}:{self.image_topic}", self._warn)
-        idx = idx[: self._limit(len(idx))]
-        late = late_entries(idx, REORDER_WINDOW)
+        # frames() inserts an arriving image before delivering, so REORDER_WINDOW - 1 may wait
+        late = late_entries(idx, max(REORDER_WINDOW - 1, 0))
         if late.any():
             self._warn(f"{self.path}:{self.image_topic}: {int(late.sum())} image(s) recorded more than "
                        f"{REORDER_WINDOW} images after later-stamped ones (header stamps far out of "
                        f"order); dropped, e.g. the one stamped {int(st[idx[late][0]])} ns")
             idx = idx[~late]
+        idx = idx[: self._limit(len(idx))]
         self._stamps = st[idx]
         self._pos = {int(s): i for i, s in enumerate(self._stamps)}
 
@@ -391,11 +392,12 @@ class BagSource(LoaderSource):
             return
         if not np.any(R) or np.allclose(R, np.eye(3), atol=1e-12):
             return      # unset (all zeros) or identity: nothing to turn
-        if not (np.all(np.isfinite(R)) and np.allclose(R @ R.T, np.eye(3), atol=1e-6)
+        # calibration files print R with a few decimals: accept 1e-4, then make it exactly orthonormal
+        if not (np.all(np.isfinite(R)) and np.allclose(R @ R.T, np.eye(3), atol=1e-4)
                 and np.linalg.det(R) > 0):
             raise InputError(f"{where}: the rectification matrix is not a rotation: {R.tolist()}")
         T_raw_rect = np.eye(4)
-        T_raw_rect[:3, :3] = R.T
+        T_raw_rect[:3, :3] = np_project_rotation(R).T
         if parts.T_bc is None:
             self._warn(f"{where}: rectified images turned by {np.degrees(np.arccos(np.clip((np.trace(R) - 1) / 2, -1, 1))):.2f} "
                        f"deg against the raw camera, and no extrinsic T_bc to apply it to: outputs are in "

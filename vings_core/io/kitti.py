@@ -147,13 +147,7 @@ class KittiSource(FileFramesSource):
                 raise InputError(f"{self.options.calib_file}: no camera calibration in this file")
             raw = check_size(parts.camera, w, h, str(files[0]), self._warn)
             calib = parts.to_calibration(raw)
-            # the lever arm to camera 0 (ground truth) still comes from the sequence's calib.txt
-            P_cam = None
-            if cam != 0 and (self.path / "calib.txt").is_file():
-                P_cam = read_kitti_calib(self.path / "calib.txt").get(cam)
-            if cam != 0 and P_cam is None:
-                self._warn(f"{self.path / 'calib.txt'}: no P{cam} to move the camera-0 ground truth "
-                           f"to camera {cam}: it stays at camera 0 (~6 cm off on KITTI)")
+            P_cam = None     # the lever arm to camera 0 (ground truth): from calib.txt, below
         else:
             Ps = read_kitti_calib(self.path / "calib.txt")
             if cam not in Ps:
@@ -165,6 +159,8 @@ class KittiSource(FileFramesSource):
         self._set_camera(raw, calib)
 
         pose_file = find_kitti_poses(self.path)
+        if pose_file is not None and cam != 0 and P_cam is None:
+            P_cam = self._lever_arm_camera(cam)
         if pose_file is not None:
             poses = read_kitti_poses(pose_file)
             all_st = st
@@ -180,3 +176,18 @@ class KittiSource(FileFramesSource):
                 T0c[:3, 3] = -t
                 poses = poses @ T0c
             self._set_gt(np.asarray(all_st[:m]), poses, str(pose_file), "camera")
+
+    def _lever_arm_camera(self, cam: int) -> Optional[np.ndarray]:
+        """P of camera ``cam`` from the sequence's calib.txt when ``--calib`` gave the intrinsics
+        (only its baseline is used, to move the camera-0 ground truth); None, with a warning, when
+        calib.txt is missing, unreadable or has no such P."""
+        path = self.path / "calib.txt"
+        P = None
+        try:
+            P = read_kitti_calib(path).get(cam) if path.is_file() else None
+        except InputError as e:
+            self._warn(f"{e}")
+        if P is None:
+            self._warn(f"{path}: no P{cam} to move the camera-0 ground truth to camera {cam}: it stays "
+                       f"at camera 0 (~6 cm off on KITTI)")
+        return P

@@ -97,27 +97,42 @@ class HistoryStore:
         self._spill_if_needed()
 
     def get(self, stamp: int) -> Optional[dict]:
-        """The record of ``stamp`` (read back from disk if spilled); None when its file is missing or
-        damaged (reported, counted in ``lost_total``, and the keyframe leaves the history)."""
+        """The record of ``stamp`` (read back from disk if spilled, and kept in memory as the most
+        recently used); None when its file is missing or damaged (reported, counted in
+        ``lost_total``, and the keyframe leaves the history)."""
         s = int(stamp)
         rec = self._mem.get(s)
         if rec is None:
-            if s not in self._files:
-                raise KeyError(s)
-            try:
-                arrays = SpillFolder.read(self._files[s], FIELDS, f"history keyframe {s}")
-            except InputError as e:
-                log.error("%s: the keyframe is dropped from history training", e)
-                self.lost_total += 1
-                self.remove(s)
+            rec = self._read(s)
+            if rec is None:
                 return None
-            self.loaded_total += 1
-            rec = {k: torch.from_numpy(arrays[k]) for k in FIELDS}
             self._mem[s] = rec
             self._mem_bytes += _nbytes(rec)
         self._mem.move_to_end(s)
         self._spill_if_needed(keep=s)
         return {**rec, "index": self._index[s]}
+
+    def peek(self, stamp: int) -> Optional[dict]:
+        """Like :meth:`get`, but a spilled record is read without entering memory and the
+        least-recently-used order is left as it is (checkpoints read every record once)."""
+        s = int(stamp)
+        rec = self._mem.get(s)
+        if rec is None:
+            rec = self._read(s)
+        return None if rec is None else {**rec, "index": self._index[s]}
+
+    def _read(self, s: int) -> Optional[dict]:
+        if s not in self._files:
+            raise KeyError(s)
+        try:
+            arrays = SpillFolder.read(self._files[s], FIELDS, f"history keyframe {s}")
+        except InputError as e:
+            log.error("%s: the keyframe is dropped from history training", e)
+            self.lost_total += 1
+            self.remove(s)
+            return None
+        self.loaded_total += 1
+        return {k: torch.from_numpy(arrays[k]) for k in FIELDS}
 
     def remove(self, stamp: int) -> None:
         s = int(stamp)
@@ -133,10 +148,10 @@ class HistoryStore:
         self._stamps.remove(s)
 
     def items(self) -> Iterable[tuple[int, dict]]:
-        """``(stamp, record)`` in insertion order, reading spilled ones one at a time (checkpoints);
-        records found lost are skipped."""
+        """``(stamp, record)`` in insertion order, one at a time through :meth:`peek` (memory stays
+        bounded, the in-memory set unchanged); records found lost are skipped."""
         for s in list(self._stamps):
-            rec = self.get(s)
+            rec = self.peek(s)
             if rec is not None:
                 yield s, rec
 
@@ -154,11 +169,16 @@ class HistoryStore:
             s = next(iter(self._mem))
             if s == keep:
                 break     # the record just asked for stays, even over the budget
-            rec = self._mem.pop(s)
             if s not in self._files:     # records never change: a file once written stays valid
-                self._files[s] = self._folder.write(f"kf_{s}.npz", {k: rec[k].numpy() for k in FIELDS})
+                rec = self._mem[s]        # written before it leaves memory: a failed write loses nothing
+                try:
+                    self._files[s] = self._folder.write(f"kf_{s}.npz", {k: rec[k].numpy() for k in FIELDS})
+                except OSError as e:
+                    log.warning("history keyframes: cannot spill to disk (%s); kept in memory over "
+                                "history_memory_mb", e)
+                    return
                 self.spilled_total += 1
-            self._mem_bytes -= _nbytes(rec)
+            self._mem_bytes -= _nbytes(self._mem.pop(s))
 
     def __del__(self) -> None:  # best effort: private temp folders do not outlive the store
         try:

@@ -20,6 +20,7 @@ import json
 import math
 import os
 import time
+import zipfile
 from dataclasses import asdict, replace
 from pathlib import Path
 from typing import Optional
@@ -311,12 +312,6 @@ class Mapper:
                 "camera": self.camera.to_dict() if self.camera is not None else None}
         d["meta"] = np.frombuffer(json.dumps(meta).encode(), dtype=np.uint8)
         d["rng_state"] = self.rng.get_state().numpy()
-        hist = sorted(self._history.items(), key=lambda r: r[0])
-        d["hist/stamps"] = np.array([s for s, _ in hist], dtype=np.int64)
-        for k in ("image", "depth", "inv_depth_var", "valid"):
-            d[f"hist/{k}"] = np.stack([r[k].numpy() for _, r in hist]) if hist else np.zeros((0,))
-        d["hist/index"] = np.array([r["index"] for _, r in hist], dtype=np.int64)
-        del hist
         pa = sorted(self._pose_adam)
         d["pose_adam/stamps"] = np.array(pa, dtype=np.int64)
         d["pose_adam/m"] = np.stack([self._pose_adam[s][0] for s in pa]) if pa else np.zeros((0, 6))
@@ -325,8 +320,20 @@ class Mapper:
         d["pose_adam/v_shared"] = self._pose_v.copy()
 
         def _w(tmp: str) -> None:
-            with open(tmp, "wb") as f:
-                np.savez(f, **d)
+            # an .npz (uncompressed zip of .npy) written entry by entry: the history keyframes go in
+            # one at a time (``hist/<stamp>/<field>``), so a long run's spilled history is not
+            # gathered in memory to be saved
+            with zipfile.ZipFile(tmp, "w", zipfile.ZIP_STORED, allowZip64=True) as zf:
+                for k, a in d.items():
+                    _write_npy(zf, k, a)
+                saved, index = [], []
+                for s, rec in self._history.items():
+                    for k in ("image", "depth", "inv_depth_var", "valid"):
+                        _write_npy(zf, f"hist/{s}/{k}", rec[k].numpy())
+                    saved.append(s)
+                    index.append(rec["index"])
+                _write_npy(zf, "hist/stamps", np.array(saved, dtype=np.int64))
+                _write_npy(zf, "hist/index", np.array(index, dtype=np.int64))
         atomic_write(path, _w)
 
     @staticmethod
@@ -365,10 +372,12 @@ class Mapper:
                 if lm.size:
                     m._loss_maps[kf.stamp_ns] = torch.from_numpy(lm)
             m.rng.set_state(torch.from_numpy(z["rng_state"]))
-            for j, s_ in enumerate(z["hist/stamps"]):
-                rec = {k: torch.from_numpy(np.array(z[f"hist/{k}"][j]))
-                       for k in ("image", "depth", "inv_depth_var", "valid")}
-                m._history.put(int(s_), {**rec, "index": int(z["hist/index"][j])})
+            fields = ("image", "depth", "inv_depth_var", "valid")
+            stacked = {k: z[f"hist/{k}"] for k in fields} if "hist/image" in z.files else None  # older layout
+            for j, (s_, ix) in enumerate(zip(z["hist/stamps"].tolist(), z["hist/index"].tolist())):
+                rec = {k: torch.from_numpy(np.array(stacked[k][j]) if stacked is not None else z[f"hist/{s_}/{k}"])
+                       for k in fields}
+                m._history.put(int(s_), {**rec, "index": int(ix)})
             if "pose_adam/v_shared" in z:
                 m._pose_v = np.array(z["pose_adam/v_shared"], dtype=np.float64)
             m._pose_adam = {int(s): (np.array(a), np.array(b), int(c)) for s, a, b, c in
@@ -872,6 +881,12 @@ class Mapper:
         else:
             # single: only the cameras move; the owners' passive Gaussians stay too
             self.passive.resnapshot({s: self._poses[s] for s in deltas})
+
+
+def _write_npy(zf: "zipfile.ZipFile", name: str, a) -> None:
+    """One ``name.npy`` entry of an ``.npz`` (what ``np.savez`` writes, and ``np.load`` reads)."""
+    with zf.open(name + ".npy", "w", force_zip64=True) as f:
+        np.lib.format.write_array(f, np.asanyarray(a), allow_pickle=False)
 
 
 def _check_pose(T, what: str) -> np.ndarray:
