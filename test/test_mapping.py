@@ -1082,7 +1082,16 @@ def test_history_spilled_to_disk_trains_and_checkpoints_exactly_as_in_memory(roo
         assert r1["index"] == r2["index"] and all(torch.equal(r1[k], r2[k]) for k in ("image", "depth", "valid"))
     spill = list((tmp_path / "spill").glob("vings_history_*/*.npz"))
     assert spill
-    for m in (small, back, big):
+    # a checkpoint of the earlier layout (history stacked per field) still loads, to the same history
+    z = np.load(tmp_path / "small.npz")
+    old = {k: z[k] for k in z.files if not (k.startswith("hist/") and k.count("/") == 2)}
+    for f in ("image", "depth", "inv_depth_var", "valid"):
+        old[f"hist/{f}"] = np.stack([z[f"hist/{s}/{f}"] for s in z["hist/stamps"].tolist()])
+    np.savez(tmp_path / "old.npz", **old)
+    older = Mapper.load_checkpoint(tmp_path / "old.npz")
+    for s in big._history.stamps():
+        assert torch.equal(older._history.get(s)["image"], big._history.get(s)["image"])
+    for m in (small, back, big, older):
         m.close()
     assert not any((tmp_path / "spill").glob("vings_history_*/*.npz"))
 
