@@ -21,6 +21,9 @@ Experiments (``--exp``, comma separated; default all):
   generated room, or on any recording with ground truth given by ``--pose-source`` (e.g.
   ``../shared/data/kitti07_160``, at the working size ``vings run`` picks, mapped as outdoors
   when ``--pose-outdoor``).
+* ``score_frontend`` (not in the default list): the score-manager ablation on the front end's
+  keyframes (poses and depth) of the room or of ``--pose-source`` (e.g. real KITTI images):
+  Gaussian count and keyframe PSNR with the manager off and at each ``--sc-storage``.
 * ``storage``: street --loop drive (>= 300 m), few iterations per keyframe: active set vs cap, total
   count, passive store spill, peak RSS of the experiment, PSNR of the start region at first visit,
   on the return (the first keyframe back within ``tau``: rendered right after the tiers reload the
@@ -259,6 +262,36 @@ def exp_score(a, cfg: MapperConfig, base: dict | None) -> dict:
             if off["psnr_keyframes_surface_db"] is not None and r["psnr_keyframes_surface_db"] is not None:
                 r["psnr_surface_loss_db"] = off["psnr_keyframes_surface_db"] - r["psnr_keyframes_surface_db"]
     return {"scene": a.score_scene, "frames": seq.n, "keyframes": len(kf), "variants": res}
+
+
+def exp_score_frontend(a, cfg: MapperConfig) -> dict:
+    """Score-manager ablation on the front end's keyframes (poses and depth), e.g. of a real
+    recording given by ``--pose-source``: Gaussian count and keyframe PSNR with the manager off and
+    at the ``--sc-storage`` values (per-view rule, the default)."""
+    kfs, _ = _frontend_keyframes(a, a.pose_frames)
+    if a.pose_outdoor:
+        cfg = replace(cfg, outdoor=True)
+    cam = kfs[0].camera
+    res = {}
+    variants = [("off", replace(cfg, score_manager=False))]
+    variants += [(f"{v:g}", replace(cfg, score_manager=True, sc_storage=v)) for v in a.sc_storage]
+    for name, c in variants:
+        m, st = run_mapping(None, c, None, tag=f"score_fe[{name}]",
+                            keyframes=[replace(k, T_wc=k.T_wc.clone()) for k in kfs])
+        poses = m.keyframe_poses()
+        ps = [psnr(m.render(poses[k.stamp_ns], cam)["color"], k.image.numpy()) for k in kfs]
+        res[name] = {"num_gaussians": m.num_gaussians, "psnr_keyframes_db": float(np.mean(ps)),
+                     "pruned": m.counters["pruned"], "stable": int(m.gm.stable.sum()),
+                     "time_per_kf_s": st["time_per_kf_s"]}
+        log(f"score_fe[{name}]:", res[name])
+        m.close()
+    off = res["off"]
+    for name, r in res.items():
+        if name != "off":
+            r["reduction_pct"] = 100.0 * (1 - r["num_gaussians"] / max(1, off["num_gaussians"]))
+            r["psnr_loss_db"] = off["psnr_keyframes_db"] - r["psnr_keyframes_db"]
+    return {"source": a.pose_source or "room", "frames": a.pose_frames, "keyframes": len(kfs),
+            "width": cam.width, "height": cam.height, "variants": res}
 
 
 def _noisy_poses(seq: SimSequence, kf_idx, trans_m: float, rot_deg: float, seed: int) -> dict:
@@ -565,8 +598,10 @@ def main(argv=None) -> int:
                         "(sc_storage_per_view=False, prune_window_owned_only=False)")
     p.add_argument("--pose-frames", type=int, default=100)
     p.add_argument("--pose-source", default=None,
-                   help="pose_frontend on this recording (any source with ground truth) instead of the room")
-    p.add_argument("--pose-outdoor", action="store_true", help="pose_frontend: map with outdoor=True")
+                   help="pose_frontend / score_frontend on this recording (any source with ground truth) "
+                        "instead of the room")
+    p.add_argument("--pose-outdoor", action="store_true",
+                   help="pose_frontend / score_frontend: map with outdoor=True")
     p.add_argument("--frontend-frames", type=int, default=200)
     p.add_argument("--workdir", default=os.path.join(os.environ.get("TMPDIR", "/tmp"), "vings_bench_mapping"),
                    help="where generated synthetic sequences are cached")
@@ -628,6 +663,7 @@ def main(argv=None) -> int:
 
     run = {"room": room_exp, "frontend": lambda: exp_frontend(a, cfg), "score": lambda: exp_score(a, cfg, room),
            "pose": lambda: exp_pose(a, cfg), "pose_frontend": lambda: exp_pose_frontend(a, cfg),
+           "score_frontend": lambda: exp_score_frontend(a, cfg),
            "storage": lambda: exp_storage(a, cfg), "timing": lambda: exp_timing(a, cfg, room)}
     failed = []
     try:
@@ -649,7 +685,7 @@ def main(argv=None) -> int:
     return 1 if failed else 0
 
 
-EXPERIMENTS = ("room", "frontend", "score", "pose", "pose_frontend", "storage", "timing")
+EXPERIMENTS = ("room", "frontend", "score", "pose", "pose_frontend", "score_frontend", "storage", "timing")
 
 
 def _json_safe(v):

@@ -174,6 +174,13 @@ def test_cli_images(capsys, tmp_path):
     # two images of the same name: which one is compared must not depend on the sort order
     cv2.imwrite(str(b_dir / "000.bmp"), img[..., ::-1])
     assert "000.bmp and 000.png share the name" in run_err(capsys, ["eval", "--images", str(a_dir), str(b_dir)])
+    # the runner's renders (kf_<stamp>.png) pair with a recording's frames (<stamp>.png)
+    (tmp_path / "renders").mkdir()
+    (tmp_path / "frames").mkdir()
+    cv2.imwrite(str(tmp_path / "renders" / "kf_1700000000000000000.png"), img[..., ::-1])
+    cv2.imwrite(str(tmp_path / "frames" / "1700000000000000000.png"), img[..., ::-1])
+    r = run_json(capsys, ["eval", "--images", str(tmp_path / "renders"), str(tmp_path / "frames")])
+    assert r["images"]["images"] == 1 and r["images"]["identical_images"] == 1
     # a file that is not a weights archive: one line, without torch's weights_only advice
     err = run_err(capsys, ["eval", "--images", str(a_dir), str(a_dir), "--lpips-weights",
                            str(a_dir / "000.png")])
@@ -202,3 +209,10 @@ def test_absurd_image_sizes_are_refused_by_the_parser(capsys, argv):
     with pytest.raises(SystemExit) as e:
         main(argv)
     assert e.value.code == 2 and "must be <= 8192" in capsys.readouterr().err
+
+
+def test_cli_max_dt_out_of_range_is_one_line(capsys, tmp_path):
+    est = tmp_path / "e.tum"
+    est.write_text("".join(f"{i}.0 {i} 0 0 0 0 0 1\n" for i in range(5)))
+    assert "--max-dt-ms must be in [0, 1e9] ms" in run_err(
+        capsys, ["eval", str(est), "--gt", str(est), "--max-dt-ms", "1e13"])

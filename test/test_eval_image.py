@@ -183,3 +183,28 @@ def test_lpips_bad_files(tmp_path):
     m = load_lpips(tmp_path / "w.pth")
     with pytest.raises(InputError, match="at least 32x32"):
         m.distance(np.zeros((16, 16, 3)), np.zeros((16, 16, 3)))
+
+
+def test_metric_ranges_and_dtypes_are_checked():
+    from vings_core.errors import InputError
+    from vings_core.eval.image import psnr, ssim
+    rng = np.random.default_rng(3)
+    a8 = rng.integers(0, 256, (32, 32, 3), dtype=np.uint8)
+    b8 = np.clip(a8.astype(int) + rng.integers(-9, 10, a8.shape), 0, 255).astype(np.uint8)
+    # uint8 with the skimage habit data_range=255 is the same measurement as the default
+    assert psnr(a8, b8, data_range=255) == pytest.approx(psnr(a8, b8))
+    assert ssim(a8, b8, data_range=255) == pytest.approx(ssim(a8, b8))
+    assert psnr(a8, b8) == pytest.approx(psnr(a8 / 255.0, b8 / 255.0))
+    with pytest.raises(InputError, match="uint8 images are compared in"):
+        psnr(a8, b8, data_range=2.0)
+    # 0..255 floats without /255: refused with the hint, not a negative PSNR
+    with pytest.raises(InputError, match="divide by 255"):
+        psnr(a8.astype(np.float32), b8 / 255.0)
+    with pytest.raises(InputError, match="divide by 255"):
+        ssim(a8.astype(np.float64), b8.astype(np.float64))
+    # ... unless that is the scale given
+    assert psnr(a8.astype(np.float64), b8.astype(np.float64), data_range=255) == pytest.approx(psnr(a8, b8))
+    bad = a8 / 255.0
+    bad[0, 0, 0] = np.nan
+    with pytest.raises(InputError, match="non-finite"):
+        psnr(bad, b8)

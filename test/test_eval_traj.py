@@ -304,3 +304,18 @@ def test_tum_stamps_in_nanoseconds_are_a_clear_error(tmp_path):
     p.write_text("inf 0 0 0 0 0 0 1\n")
     with pytest.raises(InputError, match=r"est_ns.tum:1: not a finite time stamp"):
         read_tum(p)
+
+
+def test_reflected_rotations_are_refused():
+    from vings_core.errors import InputError
+    from vings_core.eval.traj import evaluate_trajectory
+    from vings_core.types import Trajectory
+    P = np.tile(np.eye(4), (6, 1, 1))
+    P[:, 0, 3] = np.arange(6.0)
+    P[:, 1, 3] = np.arange(6.0) ** 2 * 0.1
+    P[:, :3, :3] = np.diag([1.0, -1.0, 1.0])
+    st = np.arange(6, dtype=np.int64) * 10**8
+    good = P.copy()
+    good[:, :3, :3] = np.eye(3)
+    with pytest.raises(InputError, match="reflections"):
+        evaluate_trajectory(Trajectory(st, P), Trajectory(st, good))

@@ -544,3 +544,13 @@ def test_cli_reports_bad_option_as_one_line(tmp_path, capsys):
     assert rc == 2
     err = capsys.readouterr().err
     assert "length-m" in err and "Traceback" not in err and len(err.strip().splitlines()) == 1
+
+
+def test_mcap_skip_reason_reaches_the_summary(tmp_path, monkeypatch):
+    import json
+
+    from vings_core.sim import sequence
+    monkeypatch.setattr(sequence, "_write_mcap", lambda tmp, name: (None, "MCAP skipped: test reason"))
+    out = generate("room", tmp_path / "seq", frames=3, width=48, height=32, mcap=True, noise=False)
+    summary = json.loads((out / sequence.SUMMARY_NAME).read_text())
+    assert summary["mcap"] is None and "MCAP skipped: test reason" in summary["notes"]

@@ -50,6 +50,34 @@ def _pair(a: ArrayLike, b: ArrayLike) -> tuple[torch.Tensor, torch.Tensor]:
     return ta, tb
 
 
+def _metric_pair(a: ArrayLike, b: ArrayLike, data_range: Optional[float]) -> tuple[torch.Tensor, torch.Tensor, float]:
+    """Both images in [0, 1]-units and the peak value in those units.
+
+    ``data_range`` is the peak of the inputs as given: None = 1 for float images (uint8 ones are
+    divided by 255 first); 255 with uint8 input is the same thing (the skimage habit). A float
+    image outside ``[0, data_range]`` (e.g. 0..255 floats without ``/ 255``) or with NaN is refused
+    rather than measured: it would give a meaningless PSNR."""
+    is8 = any(getattr(x, "dtype", None) in (np.uint8, torch.uint8) for x in (a, b))
+    rng = 1.0 if data_range is None else float(data_range)
+    if not (np.isfinite(rng) and rng > 0):
+        raise InputError(f"data_range must be a positive number, got {data_range}")
+    if is8 and rng not in (1.0, 255.0):
+        raise InputError(f"data_range {data_range} with uint8 images: uint8 images are compared in "
+                         f"[0, 1] units (255 -> 1); leave data_range out")
+    if is8:
+        rng = 1.0
+    ta, tb = _pair(a, b)
+    for name, t in (("first image", ta), ("second image", tb)):
+        if not bool(torch.isfinite(t).all()):
+            raise InputError(f"{name}: {int((~torch.isfinite(t)).sum())} non-finite values")
+        lo, hi = float(t.min()), float(t.max())
+        if lo < -1e-6 * rng or hi > rng * (1 + 1e-6):
+            raise InputError(f"{name}: values in [{lo:.4g}, {hi:.4g}] outside [0, {rng:g}]"
+                             + (" (0..255 floats? divide by 255)" if hi > 1.5 * rng else "")
+                             + "; give data_range for another scale")
+    return ta, tb, rng
+
+
 def mse(a: ArrayLike, b: ArrayLike, mask: Optional[ArrayLike] = None) -> float:
     """Mean squared error over all channels (of the pixels where ``mask`` is true, if given)."""
     ta, tb = _pair(a, b)
@@ -68,13 +96,16 @@ def mse(a: ArrayLike, b: ArrayLike, mask: Optional[ArrayLike] = None) -> float:
     return float(d2[m].mean())
 
 
-def psnr(a: ArrayLike, b: ArrayLike, mask: Optional[ArrayLike] = None, data_range: float = 1.0) -> float:
-    """Peak signal-to-noise ratio in dB, ``10 log10(data_range^2 / MSE)``; ``inf`` for identical
-    images. ``mask`` (``(H, W)`` bool) restricts the MSE to the selected pixels."""
-    e = mse(a, b, mask)
+def psnr(a: ArrayLike, b: ArrayLike, mask: Optional[ArrayLike] = None,
+         data_range: Optional[float] = None) -> float:
+    """Peak signal-to-noise ratio in dB, ``10 log10(peak^2 / MSE)``; ``inf`` for identical
+    images. ``mask`` (``(H, W)`` bool) restricts the MSE to the selected pixels. Float images in
+    [0, 1] or uint8 (``data_range``: see :func:`_metric_pair`)."""
+    ta, tb, rng = _metric_pair(a, b, data_range)
+    e = mse(ta, tb, mask)
     if e == 0.0:
         return float("inf")
-    return float(10.0 * np.log10(data_range ** 2 / e))
+    return float(10.0 * np.log10(rng ** 2 / e))
 
 
 def gaussian_kernel1d(win: int = SSIM_WIN, sigma: float = SSIM_SIGMA, dtype=torch.float64) -> torch.Tensor:
@@ -107,9 +138,10 @@ def ssim_map(a: torch.Tensor, b: torch.Tensor, data_range: float = 1.0,
     return ((2 * mu_a * mu_b + c1) * (2 * cov + c2)) / ((mu_a ** 2 + mu_b ** 2 + c1) * (va + vb + c2))
 
 
-def ssim(a: ArrayLike, b: ArrayLike, data_range: float = 1.0) -> float:
+def ssim(a: ArrayLike, b: ArrayLike, data_range: Optional[float] = None) -> float:
     """Mean SSIM of two ``(H, W)`` / ``(H, W, C)`` images (Gaussian window 11, sigma 1.5),
-    matching skimage's ``structural_similarity`` with ``gaussian_weights=True``."""
-    ta, tb = _pair(a, b)
-    m = ssim_map(ta.permute(2, 0, 1)[None], tb.permute(2, 0, 1)[None], data_range)
+    matching skimage's ``structural_similarity`` with ``gaussian_weights=True`` (``data_range``:
+    see :func:`_metric_pair`)."""
+    ta, tb, rng = _metric_pair(a, b, data_range)
+    m = ssim_map(ta.permute(2, 0, 1)[None], tb.permute(2, 0, 1)[None], rng)
     return float(m.mean())

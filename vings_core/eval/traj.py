@@ -58,6 +58,10 @@ def _check_sorted(traj: Trajectory, name: str) -> Trajectory:
     if dev > 1e-3:
         raise InputError(f"{name} trajectory has rotation matrices that are not orthonormal "
                          f"(|R^T R - I| up to {dev:.3g})")
+    bad = np.linalg.det(R) < 0
+    if bad.any():
+        raise InputError(f"{name} trajectory has {int(bad.sum())} reflections (rotation blocks with "
+                         f"determinant -1, a left-handed frame), e.g. at stamp {int(traj.stamps_ns[bad][0])} ns")
     if dev > 1e-12:  # e.g. KITTI poses printed with few digits: project onto SO(3)
         traj = Trajectory(traj.stamps_ns, traj.poses.copy())
         traj.poses[:, :3, :3] = np_project_rotation(R)

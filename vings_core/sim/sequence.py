@@ -253,6 +253,7 @@ def generate(scene_name: str, out_dir, frames: Optional[int] = None, width: int 
             mcap_path, why = _write_mcap(tmp, scene_name)
             if why:
                 notes.append(why)
+        summary["notes"] = list(notes)      # with the MCAP step's note, if any
         summary["mcap"] = str(out / mcap_path.name) if mcap_path else None
         summary["out_dir"] = str(out)
         summary["wall_s"] = round(time.time() - wall0, 3)

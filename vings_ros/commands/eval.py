@@ -141,8 +141,8 @@ def eval_trajectory_cli(args: argparse.Namespace) -> dict:
 
     if not args.gt:
         raise InputError("--gt is required to evaluate a trajectory (TUM file or dataset path)")
-    if not (0 <= args.max_dt_ms < float("inf")):
-        raise InputError(f"--max-dt-ms must be finite and >= 0, got {args.max_dt_ms}")
+    if not (0 <= args.max_dt_ms <= 1e9):    # 1e6 s: beyond any recording; int64 ns stay far from overflow
+        raise InputError(f"--max-dt-ms must be in [0, 1e9] ms, got {args.max_dt_ms}")
     est_path, run_dir = _resolve_estimate(args.estimate)
     est = read_tum(est_path)
     gt, info = load_ground_truth(args.gt, args.gt_frame, args.calib, args.image_topic, args.gt_topic)
@@ -185,6 +185,7 @@ def eval_images(dir_a: str, dir_b: str, lpips_weights: Optional[str] = None) -> 
     import numpy as np
 
     from vings_core.eval.image import psnr, ssim
+    from vings_core.eval.output import RUN_RENDER_PREFIX
 
     a, b = Path(dir_a), Path(dir_b)
     for d in (a, b):
@@ -195,10 +196,12 @@ def eval_images(dir_a: str, dir_b: str, lpips_weights: Optional[str] = None) -> 
         out: dict = {}
         for f in sorted(d.iterdir()):
             if f.suffix.lower() in IMAGE_SUFFIXES:
-                if f.stem in out:     # which one would be compared must not depend on the sort order
-                    raise InputError(f"{d}: {out[f.stem].name} and {f.name} share the name "
-                                     f"{f.stem!r}; keep one image per name")
-                out[f.stem] = f
+                # the runner's renders are kf_<stamp>.png; recordings name frames <stamp>.png
+                key = f.stem[len(RUN_RENDER_PREFIX):] if f.stem.startswith(RUN_RENDER_PREFIX) else f.stem
+                if key in out:     # which one would be compared must not depend on the sort order
+                    raise InputError(f"{d}: {out[key].name} and {f.name} share the name "
+                                     f"{key!r}; keep one image per name")
+                out[key] = f
         return out
 
     la, lb = listing(a), listing(b)
