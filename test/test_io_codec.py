@@ -134,6 +134,10 @@ def test_frame_converter_skips_black_first_frames_and_reports_saturation():
     conv(np.array([[65535]], np.uint16))                   # brighter than the mapping: saturates
     conv(np.array([[65535]], np.uint16))
     assert sum("saturate" in n for n in notes) == 1        # reported once
+    # a dim first image of a 12-bit camera (max 600: 10 bits) leaves headroom up to 1023
+    dim = FrameConverter("dim", notes.append)
+    assert dim(np.array([[600, 300]], np.uint16)).tolist() == [[150, 75]] and "shift of 2 bits" in notes[-1]
+    assert dim(np.array([[1023]], np.uint16)).tolist() == [[255]]
     fconv = FrameConverter("f", notes.append)
     assert fconv(np.zeros((1, 2), np.float32)).tolist() == [[0, 0]]
     assert fconv(np.array([[50.0, 25.0]], np.float32)).tolist() == [[255, 128]]

@@ -177,8 +177,9 @@ class FrameConverter:
     """Turns decoded images of any supported dtype into ``uint8`` frames, with ONE fixed mapping per
     stream (chosen from the first image) so that brightness stays consistent over time.
 
-    ``uint8``: unchanged. Integer 16-bit: shifted right by ``bits - 8`` where ``bits`` is the bit
-    depth needed by the first non-black image's maximum (so 10/12-bit cameras are not dark). Float:
+    ``uint8``: unchanged. Integer 16-bit: shifted right by ``bits - 8`` where ``bits`` is the
+    sensor depth (8, 10, 12, 14 or 16) that holds the first non-black image's maximum (so 10/12-bit
+    cameras are not dark, and a dim first image still leaves headroom up to its depth). Float:
     values in [0, 1] are scaled by 255, otherwise by ``255 / max`` of the first non-black image.
     Colour 16-bit likewise. All-black images (a camera starting up) do not fix the mapping. Notes,
     and a warning the first time a later image saturates the chosen mapping, go to ``warn``.
@@ -199,7 +200,10 @@ class FrameConverter:
             if self._shift is None:
                 if mx <= 0:
                     return np.zeros(img.shape, np.uint8)    # black: decide on a later image
-                bits = max(8, int(mx).bit_length())
+                # rounded up to a sensor depth (10/12/14/16 bit): a dim first image (exposure still
+                # settling) must not fix a shift that saturates every later, brighter one
+                need = int(mx).bit_length()
+                bits = next(b for b in (8, 10, 12, 14, 16, 32, 64) if b >= need)
                 self._shift = bits - 8
                 self._note(f"{self.where}: {img.dtype} images converted to 8 bit by a right shift of "
                            f"{self._shift} bits (chosen from the first non-black image, max {mx})")
