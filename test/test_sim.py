@@ -554,3 +554,9 @@ def test_mcap_skip_reason_reaches_the_summary(tmp_path, monkeypatch):
     out = generate("room", tmp_path / "seq", frames=3, width=48, height=32, mcap=True, noise=False)
     summary = json.loads((out / sequence.SUMMARY_NAME).read_text())
     assert summary["mcap"] is None and "MCAP skipped: test reason" in summary["notes"]
+
+
+def test_too_many_street_frames_names_the_frames():
+    from vings_core.errors import ConfigError
+    with pytest.raises(ConfigError, match=r"--frames 100000 at 20 fps needs a street of 60.0 km.*at most 83317 frames"):
+        generate("street", "/nonexistent/never-written", frames=100000)

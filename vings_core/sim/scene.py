@@ -176,6 +176,7 @@ ROAD_HALF = 5.0       # m, asphalt half width
 SIDEWALK = 2.5        # m
 LANE = 1.75           # m, ego lane offset to the right of the centreline
 STREET_LENGTH_DEFAULT = 400.0
+STREET_MAX_LENGTH_M = 50000.0       # longest street route (m)
 
 
 def _street_params(block: float) -> dict:
@@ -267,8 +268,8 @@ def _make_street(seed: int, length_m: Optional[float], loop: bool, dynamic: bool
     length = STREET_LENGTH_DEFAULT if length_m is None else float(length_m)
     if not np.isfinite(length) or length < 50.0:
         raise ConfigError(f"street length_m must be >= 50 m, got {length_m}")
-    if length > 50000.0:
-        raise ConfigError(f"street length_m must be <= 50 km, got {length_m}")
+    if length > STREET_MAX_LENGTH_M:
+        raise ConfigError(f"street length_m must be <= {STREET_MAX_LENGTH_M / 1000:g} km, got {length_m}")
     if loop:
         nodes, p = _route_loop(length)
         corners = _lane_corners(nodes, p["lane"], closed=True)

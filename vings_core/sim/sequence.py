@@ -33,7 +33,7 @@ from ..geometry import np_rotmat_to_quat
 from ..util import atomic_write_json
 from . import render_view
 from .imu import ImuNoise, simulate_imu
-from .scene import SCENES, STREET_LENGTH_DEFAULT, Scene, default_camera, make_scene
+from .scene import SCENES, STREET_LENGTH_DEFAULT, STREET_MAX_LENGTH_M, Scene, default_camera, make_scene
 from .trajectory import TimeScaledMotion
 
 log = logging.getLogger("vings.sim")
@@ -65,6 +65,11 @@ def _plan(scene_name: str, frames: Optional[int], fps: float, loop: bool,
     if length_m is None and frames is not None and not loop:
         # long enough for the requested frames at the fastest cruise speed
         length_m = max(50.0, (int(frames) - 1) / fps * 12.0 + 10.0)
+        if length_m > STREET_MAX_LENGTH_M:
+            most = int((STREET_MAX_LENGTH_M - 10.0) / 12.0 * fps) + 1
+            raise ConfigError(f"--frames {frames} at {fps:g} fps needs a street of {length_m / 1000:.1f} km; "
+                              f"the street scene is at most {STREET_MAX_LENGTH_M / 1000:g} km "
+                              f"(at most {most} frames at {fps:g} fps)")
     return (int(frames) if frames is not None else None), length_m
 
 
