@@ -270,3 +270,12 @@ def test_se3_exp_is_accurate_in_float32_just_above_the_series_cutoff(theta):
 def test_camera_refuses_non_finite_distortion():
     with pytest.raises(ValueError, match="distortion coefficients must be finite"):
         CameraModel(64, 48, 50.0, 50.0, 31.5, 23.5, "radtan", np.array([float("nan"), 0, 0, 0]))
+
+
+def test_rotation_angle_is_accurate_for_tiny_and_half_turn_angles():
+    import numpy as np
+
+    from vings_core.geometry import np_so3_exp, rotation_angle_deg
+    axis = np.array([0.3, -0.5, 0.8]) / np.linalg.norm([0.3, -0.5, 0.8])
+    for a in (1e-10, 1e-8, 1e-4, 0.5, 3.0, np.pi):
+        assert np.radians(rotation_angle_deg(np_so3_exp(axis * a))) == pytest.approx(a, rel=1e-9)

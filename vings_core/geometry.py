@@ -199,6 +199,9 @@ def np_se3_log(T: np.ndarray) -> np.ndarray:
 
 
 def rotation_angle_deg(R: np.ndarray) -> np.ndarray:
-    """Rotation angle (degrees) of (..., 3, 3) rotations."""
+    """Rotation angle (degrees) of (..., 3, 3) rotations: ``atan2(|vee(R - R^T)| / 2, (tr R - 1) / 2)``,
+    accurate for tiny angles too (``arccos`` of the trace loses everything below ~1e-7 rad)."""
+    R = np.asarray(R, dtype=np.float64)
     c = (np.trace(R, axis1=-2, axis2=-1) - 1) / 2
-    return np.degrees(np.arccos(np.clip(c, -1.0, 1.0)))
+    v = np.stack([R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0], R[..., 1, 0] - R[..., 0, 1]], -1)
+    return np.degrees(np.arctan2(np.linalg.norm(v, axis=-1) / 2, c))
