@@ -111,10 +111,11 @@ class _Scratch(threading.local):
     """Per-thread scratch arrays for the backward's per-pair rows, kept between calls.
 
     At 300k Gaussians the pair rows are ~27 MB: a fresh allocation each backward is a fresh
-    mapping that the kernel zero-fills page by page (~10 ms of CPU), a cost the sampled backward
+    mapping that the kernel zero-fills page by page (a few ms of CPU), a cost the sampled backward
     pays in full however few pairs it visits. Every row is written before it is read (rows a
     pass does not visit are flagged unused), so reuse needs no clearing. Per thread, so
-    concurrent renders never share one; the per-Gaussian sums go to a fresh array.
+    concurrent renders never share one; the per-Gaussian sums go to a fresh array. A thread keeps
+    the largest buffers it needed (~90 bytes per tile-list entry) until it ends.
     """
 
     MAX_BYTES = 1 << 30   # a larger request is allocated afresh and not kept
