@@ -227,6 +227,15 @@ def exp_room(a, cfg: MapperConfig) -> tuple[dict, Mapper, SimSequence]:
     return out, m, seq
 
 
+def _relative_to_off(res: dict) -> None:
+    """In place: each variant's Gaussian reduction (%) and keyframe PSNR loss (dB) against "off"."""
+    off = res["off"]
+    for name, r in res.items():
+        if name != "off":
+            r["reduction_pct"] = 100.0 * (1 - r["num_gaussians"] / max(1, off["num_gaussians"]))
+            r["psnr_loss_db"] = off["psnr_keyframes_db"] - r["psnr_keyframes_db"]
+
+
 def exp_score(a, cfg: MapperConfig, base: dict | None) -> dict:
     seq = SimSequence(a.score_scene, a.score_frames, a.width, a.height)
     kf, novel = split_views(seq.n, a.kf_every, a.max_novel)
@@ -255,10 +264,9 @@ def exp_score(a, cfg: MapperConfig, base: dict | None) -> dict:
         log(f"score[{name}]:", res[name])
         m.close()
     off = res["off"]
+    _relative_to_off(res)
     for name, r in res.items():
         if name != "off":
-            r["reduction_pct"] = 100.0 * (1 - r["num_gaussians"] / max(1, off["num_gaussians"]))
-            r["psnr_loss_db"] = off["psnr_keyframes_db"] - r["psnr_keyframes_db"]
             if off["psnr_keyframes_surface_db"] is not None and r["psnr_keyframes_surface_db"] is not None:
                 r["psnr_surface_loss_db"] = off["psnr_keyframes_surface_db"] - r["psnr_keyframes_surface_db"]
     return {"scene": a.score_scene, "frames": seq.n, "keyframes": len(kf), "variants": res}
@@ -285,11 +293,7 @@ def exp_score_frontend(a, cfg: MapperConfig) -> dict:
                      "time_per_kf_s": st["time_per_kf_s"]}
         log(f"score_fe[{name}]:", res[name])
         m.close()
-    off = res["off"]
-    for name, r in res.items():
-        if name != "off":
-            r["reduction_pct"] = 100.0 * (1 - r["num_gaussians"] / max(1, off["num_gaussians"]))
-            r["psnr_loss_db"] = off["psnr_keyframes_db"] - r["psnr_keyframes_db"]
+    _relative_to_off(res)
     return {"source": a.pose_source or "room", "frames": a.pose_frames, "keyframes": len(kfs),
             "width": cam.width, "height": cam.height, "variants": res}
 
