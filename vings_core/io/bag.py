@@ -27,7 +27,7 @@ from typing import Iterator, Optional
 import numpy as np
 
 from ..errors import InputError
-from ..geometry import np_project_rotation, np_quat_to_rotmat
+from ..geometry import np_project_rotation, np_quat_to_rotmat, rotation_angle_deg
 from ..trajectory_io import sec_nsec_to_ns
 from ..types import CameraModel, Frame
 from .base import SourceOptions
@@ -399,9 +399,9 @@ class BagSource(LoaderSource):
         T_raw_rect = np.eye(4)
         T_raw_rect[:3, :3] = np_project_rotation(R).T
         if parts.T_bc is None:
-            self._warn(f"{where}: rectified images turned by {np.degrees(np.arccos(np.clip((np.trace(R) - 1) / 2, -1, 1))):.2f} "
-                       f"deg against the raw camera, and no extrinsic T_bc to apply it to: outputs are in "
-                       f"the rectified camera frame")
+            self._warn(f"{where}: rectified images turned by {float(rotation_angle_deg(R)):.2f} deg against "
+                       f"the raw camera, and no extrinsic T_bc to apply it to: outputs are in the rectified "
+                       f"camera frame")
             return
         parts.T_bc = np.asarray(parts.T_bc, dtype=np.float64) @ T_raw_rect
 
