@@ -86,13 +86,14 @@ def probe_writable_dir(d: str | os.PathLike) -> None:
     _write_test(d)
 
 
-def check_output_file(path: str | os.PathLike, what: str) -> Path:
+def check_output_file(path: str | os.PathLike, what: str, error: type = VingsError) -> Path:
     """Before a long job: ``path`` (``~`` expanded; the returned path) can be written as a file: not
     a folder, and its nearest existing folder is write-tested (missing folders are created only
-    when the file is written). Raises :class:`VingsError` naming ``what`` (e.g. the option)."""
+    when the file is written). Raises ``error`` (a :class:`VingsError` subclass) naming ``what``
+    (e.g. the option)."""
     path = Path(path).expanduser().absolute()
     if path.is_dir():
-        raise VingsError(f"{what} {path}: is a folder; give a file name")
+        raise error(f"{what} {path}: is a folder; give a file name")
     base = path.parent
     while not base.exists() and base != base.parent:
         base = base.parent
@@ -101,7 +102,7 @@ def check_output_file(path: str | os.PathLike, what: str) -> Path:
             raise NotADirectoryError(20, f"{base} is not a folder")
         _write_test(base)
     except OSError as e:
-        raise VingsError(f"{what} {path}: cannot write there ({e.strerror or e})") from None
+        raise error(f"{what} {path}: cannot write there ({e.strerror or e})") from None
     return path
 
 

@@ -18,7 +18,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Optional, TextIO
 
-from vings_core.errors import ConfigError, VingsError
+from vings_core.errors import ConfigError
 from vings_core.util import check_output_file
 
 from .ros_env import cleanup_fastdds_shm, ros_environment, shm_snapshot
@@ -70,10 +70,7 @@ class Launcher:
         if opt.record and not str(opt.record).endswith(".mcap"):
             raise ConfigError(f"--record {opt.record}: the output must be a .mcap file")
         if opt.record:      # before any node starts, not when the recorder dies
-            try:
-                opt.record = str(check_output_file(opt.record, "--record"))
-            except VingsError as e:
-                raise ConfigError(str(e)) from None
+            opt.record = str(check_output_file(opt.record, "--record", ConfigError))
         if opt.record and Path(opt.record).exists():
             raise ConfigError(f"--record {opt.record}: the file exists; recordings are never "
                               f"overwritten, choose a new name")

@@ -44,7 +44,7 @@ from dataclasses import asdict, dataclass, field
 from typing import Callable, Optional, TextIO
 
 from vings_core.errors import ConfigError, VingsError
-from vings_core.util import check_output_file
+from vings_core.util import atomic_write_text, check_output_file
 from vings_core.types import Frame, ImuSample
 
 from msg_adapters import topics as T
@@ -113,10 +113,7 @@ class ReplayOptions:
                                   f"message types differ); give each its own topic")
             seen[v] = k
         if self.publish_log:    # found before the replay, not after it
-            try:
-                self.publish_log = str(check_output_file(self.publish_log, "--publish-log"))
-            except VingsError as e:
-                raise ConfigError(str(e)) from None
+            self.publish_log = str(check_output_file(self.publish_log, "--publish-log", ConfigError))
         self.topics = full
 
 
@@ -479,7 +476,6 @@ class Replayer:
             st.ack_wait_mean_ms = 1e3 * sum(self._ack_waits) / len(self._ack_waits)
             st.ack_wait_max_ms = 1e3 * max(self._ack_waits)
         if self.opt.publish_log:
-            from vings_core.util import atomic_write_text
             try:
                 atomic_write_text(self.opt.publish_log, "# stamp_ns,publish_wall_ns\n" + "".join(
                     f"{s},{w}\n" for s, w in self._pub_log))

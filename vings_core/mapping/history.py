@@ -60,8 +60,7 @@ class HistoryStore:
         self.memory_budget_bytes = int(memory_budget_bytes)
         self._mem: "OrderedDict[int, dict]" = OrderedDict()   # stamp -> record, least recent first
         self._files: dict[int, Path] = {}                      # stamp -> spilled file
-        self._index: dict[int, int] = {}                       # stamp -> keyframe index
-        self._stamps: list[int] = []                           # insertion order
+        self._index: dict[int, int] = {}                       # stamp -> keyframe index, insertion order
         self._mem_bytes = 0
         self._folder = SpillFolder(spill_dir, "vings_history_")
         self.spilled_total = 0
@@ -69,14 +68,14 @@ class HistoryStore:
         self.lost_total = 0
 
     def __len__(self) -> int:
-        return len(self._stamps)
+        return len(self._index)
 
     def __contains__(self, stamp: int) -> bool:
         return int(stamp) in self._index
 
     def stamps(self) -> list[int]:
         """Stamps in the order they were added."""
-        return list(self._stamps)
+        return list(self._index)
 
     @property
     def memory_bytes(self) -> int:
@@ -84,7 +83,7 @@ class HistoryStore:
 
     @property
     def num_spilled(self) -> int:
-        return sum(1 for s in self._stamps if s not in self._mem)
+        return sum(1 for s in self._index if s not in self._mem)
 
     def put(self, stamp: int, rec: dict) -> None:
         """Add (or replace) the record of keyframe ``stamp``."""
@@ -92,7 +91,6 @@ class HistoryStore:
         self.remove(s)
         self._mem[s] = {k: rec[k] for k in FIELDS}
         self._index[s] = int(rec["index"])
-        self._stamps.append(s)
         self._mem_bytes += _nbytes(rec)
         self._spill_if_needed()
 
@@ -145,12 +143,11 @@ class HistoryStore:
         if path is not None and path.exists():
             path.unlink()
         del self._index[s]
-        self._stamps.remove(s)
 
     def items(self) -> Iterable[tuple[int, dict]]:
         """``(stamp, record)`` in insertion order, one at a time through :meth:`peek` (memory stays
         bounded, the in-memory set unchanged); records found lost are skipped."""
-        for s in list(self._stamps):
+        for s in list(self._index):
             rec = self.peek(s)
             if rec is not None:
                 yield s, rec
@@ -160,7 +157,6 @@ class HistoryStore:
         self._mem.clear()
         self._files.clear()
         self._index.clear()
-        self._stamps.clear()
         self._mem_bytes = 0
         self._folder.close()
 

@@ -38,8 +38,7 @@ from ..util import NPZ_READ_ERRORS, atomic_write, log
 from . import scores as S
 from .config import MapperConfig
 from .gaussians import ALL_FIELDS, PARAM_FIELDS, GaussianMap, quat_multiply
-from .history import HistoryStore, compact_keyframe, expand_keyframe
-from .lie import se3_exp_safe
+from .history import FIELDS as HISTORY_FIELDS, HistoryStore, compact_keyframe, expand_keyframe
 from .init import depth_normals, empty_mask, fill_depth, gaussians_from_pixels, num_to_add, sample_pixels, usable_depth_mask
 from .losses import (accumulation_loss, depth_loss, depth_weight, l1_map, normal_loss, normals_from_depth,
                      rgb_loss, ssim_target_stats)
@@ -328,7 +327,7 @@ class Mapper:
                     _write_npy(zf, k, a)
                 saved, index = [], []
                 for s, rec in self._history.items():
-                    for k in ("image", "depth", "inv_depth_var", "valid"):
+                    for k in HISTORY_FIELDS:
                         _write_npy(zf, f"hist/{s}/{k}", rec[k].numpy())
                     saved.append(s)
                     index.append(rec["index"])
@@ -372,11 +371,10 @@ class Mapper:
                 if lm.size:
                     m._loss_maps[kf.stamp_ns] = torch.from_numpy(lm)
             m.rng.set_state(torch.from_numpy(z["rng_state"]))
-            fields = ("image", "depth", "inv_depth_var", "valid")
-            stacked = {k: z[f"hist/{k}"] for k in fields} if "hist/image" in z.files else None  # older layout
+            stacked = {k: z[f"hist/{k}"] for k in HISTORY_FIELDS} if "hist/image" in z.files else None  # older layout
             for j, (s_, ix) in enumerate(zip(z["hist/stamps"].tolist(), z["hist/index"].tolist())):
                 rec = {k: torch.from_numpy(np.array(stacked[k][j]) if stacked is not None else z[f"hist/{s_}/{k}"])
-                       for k in fields}
+                       for k in HISTORY_FIELDS}
                 m._history.put(int(s_), {**rec, "index": int(ix)})
             if "pose_adam/v_shared" in z:
                 m._pose_v = np.array(z["pose_adam/v_shared"], dtype=np.float64)
@@ -805,7 +803,7 @@ class Mapper:
             kf = self._next_kf(self._rqueue)
             r = int(torch.searchsorted(owners, torch.tensor(kf.stamp_ns)))
             x = xi.clone().requires_grad_(True)
-            D = se3_exp_safe(x)                               # (U, 4, 4) camera-frame deltas
+            D = se3_exp(x)                               # (U, 4, 4) camera-frame deltas
             T_cw = pose_inverse(T_own[r] @ D[r])
             if mode == "multi":
                 Wd = (T_own @ D @ T_own_inv)                  # world-frame motion of each owner's Gaussians

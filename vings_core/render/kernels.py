@@ -498,6 +498,16 @@ def reduce_pairs(buf, used, xstart, ntiles, out):
 # ------------------------------------------------------------------------------ forward
 
 
+@njit(cache=True, inline="always")
+def _prefetch_pair(params, aux, rows, g, q):
+    """Prefetch Gaussian ``g``'s parameter and auxiliary records and per-pair output row ``q``."""
+    prefetch_row(params, g)
+    prefetch_at(params, g, NPARAM - 1)
+    prefetch_row(aux, g)
+    prefetch_at(aux, g, 12)
+    prefetch_w(rows, q)
+
+
 @njit(parallel=True, cache=True, error_model="numpy")
 def forward_tiles(params, aux, pbox, tile_off, gids, gslot, cst, width, height, xs, ys, bg, loss,
                   has_loss, out_rgb, out_depth, out_normal, out_alpha, out_dist, out_T, out_last,
@@ -544,12 +554,7 @@ def forward_tiles(params, aux, pbox, tile_off, gids, gslot, cst, width, height, 
             if ndone == npix:
                 break
             if j + PREFETCH < end:
-                ga = gids[j + PREFETCH]
-                prefetch_row(params, ga)
-                prefetch_at(params, ga, NPARAM - 1)
-                prefetch_row(aux, ga)
-                prefetch_at(aux, ga, 12)
-                prefetch_w(pair_stats, gslot[j + PREFETCH])
+                _prefetch_pair(params, aux, pair_stats, gids[j + PREFETCH], gslot[j + PREFETCH])
             g = gids[j]
             m0 = params[g, 0]
             m1 = params[g, 1]
@@ -747,16 +752,6 @@ def select_pixels(score, ratio, out_sel):
                 out_sel[py0 + q // tw, px0 + q % tw] = 1
 
 
-@njit(cache=True, inline="always")
-def _prefetch_pair(params, aux, pair_grad, g, q):
-    """Prefetch Gaussian ``g``'s parameter and auxiliary records and gradient row ``q``."""
-    prefetch_row(params, g)
-    prefetch_at(params, g, NPARAM - 1)
-    prefetch_row(aux, g)
-    prefetch_at(aux, g, 12)
-    prefetch_w(pair_grad, q)
-
-
 @njit(parallel=True, cache=True, error_model="numpy")
 def backward_tiles(params, aux, pmask, tile_off, gids, gslot, cst, width, height, xs, ys, bg, T_final,
                    last, d1, d2, g_rgb, g_depth, g_normal, g_alpha, g_dist, sel, pair_grad,
@@ -774,7 +769,7 @@ def backward_tiles(params, aux, pmask, tile_off, gids, gslot, cst, width, height
     Work is proportional to the selected pixels: each pair visits exactly the set bits of its
     forward mask ``pmask[j]`` (the pixels it was composited into) ANDed with the tile's selected
     pixels, and a pair left with none is skipped at once (no record loaded). The records of the
-    pair a few entries ahead, and its gradient row, are prefetched, so the scattered
+    pair a few *visited* pairs ahead, and its gradient row, are prefetched, so the scattered
     per-Gaussian memory does not stall every pair.
     """
     tiles_x = (width + TILE - 1) // TILE
@@ -855,7 +850,6 @@ def backward_tiles(params, aux, pmask, tile_off, gids, gslot, cst, width, height
             nv += 1
         for k in range(min(PREFETCH, nv)):
             _prefetch_pair(params, aux, pair_grad, gids[visit[k]], gslot[visit[k]])
-        mw = np.zeros(4, np.uint64)
         evals = 0
         for k in range(nv):
             if k + PREFETCH < nv:
@@ -863,10 +857,6 @@ def backward_tiles(params, aux, pmask, tile_off, gids, gslot, cst, width, height
                 _prefetch_pair(params, aux, pair_grad, gids[jp], gslot[jp])
             j = visit[k]
             q = gslot[j]
-            mw[0] = masks[k, 0]
-            mw[1] = masks[k, 1]
-            mw[2] = masks[k, 2]
-            mw[3] = masks[k, 3]
             g = gids[j]
             m0 = params[g, 0]
             m1 = params[g, 1]
@@ -920,7 +910,7 @@ def backward_tiles(params, aux, pmask, tile_off, gids, gslot, cst, width, height
             gn1 = zero
             gn2 = zero
             for w in range(4):
-                bits = mw[w]
+                bits = masks[k, w]
                 while bits != 0:
                     p = (w << 6) | int(ctz64(bits))
                     bits &= bits - bit1
