@@ -2,6 +2,8 @@
 from __future__ import annotations
 
 import math
+import shutil
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -421,6 +423,39 @@ def test_stores_sharing_a_spill_dir_and_a_lost_chunk_file(tmp_path):
         PassiveStore(memory_budget_bytes=0, spill_dir=str(f))
 
 
+def _break_spill_folder(folder) -> Path:
+    """Make every later write into a SpillFolder fail for real (its folder replaced by a file);
+    returns the folder path, to restore it with :func:`_mend_spill_folder`."""
+    d = folder.path("x").parent
+    shutil.rmtree(d)
+    d.write_text("not a folder")
+    return d
+
+
+def _mend_spill_folder(d: Path) -> None:
+    d.unlink()
+    d.mkdir()
+
+
+def test_passive_store_failed_spill_keeps_the_chunk_in_memory(tmp_path, caplog):
+    """A spill that cannot be written (disk full, folder removed) keeps the chunk in memory, warned;
+    ``put`` does not raise, so the caller's move of those Gaussians out of the active set completes
+    (raising there left them both active and passive: duplicated)."""
+    gm = _random_map(200)
+    poses = {1: np.eye(4), 2: np.eye(4), 3: np.eye(4)}
+    store = PassiveStore(memory_budget_bytes=0, spill_dir=str(tmp_path / "spill"))
+    d = _break_spill_folder(store._folder)
+    with caplog.at_level("WARNING"):
+        store.put(gm.index(torch.arange(0, 100)), poses)
+    assert "cannot spill" in caplog.text
+    assert store.num_gaussians == 100 and store.num_spilled_chunks == 0 and store.memory_bytes > 0
+    _mend_spill_folder(d)
+    store.put(gm.index(torch.arange(100, 200)), poses)       # the disk is back: both spill
+    assert store.num_spilled_chunks == 2 and store.memory_bytes == 0
+    _assert_maps_equal(_canon(store.all(poses)), _canon(gm))
+    store.close()
+
+
 def test_damaged_checkpoint_is_an_input_error(tmp_path):
     from vings_core.errors import InputError
     for name, data in (("empty.ckpt", b""), ("trunc.ckpt", b"PK\x03\x04garbage")):
@@ -579,6 +614,35 @@ def test_checkpoint_resume_is_exact_with_a_pending_passive_pose_change(room_smal
     _assert_maps_equal(m.gm, m2.gm)
 
 
+@pytest.mark.parametrize("second", ["set_poses", "single_refine"])
+def test_a_pending_passive_move_survives_a_later_change_that_moves_nothing(room_small, second):
+    """A keyframe moved with its Gaussians while they are passive (loop closure) owes them that
+    move; a later pose change that moves no Gaussians (``move_gaussians=False``, ``single``
+    refinement) must keep that debt, not overwrite it (they came back unmoved)."""
+    m, frames = _passive_mapper(room_small, refine_mode="single")
+    # a keyframe with passive Gaussians that the refinement may move (active ones in view, not the
+    # fixed first keyframe)
+    window = [kf.stamp_ns for kf in m.window]
+    s0 = next(s for s in m.passive.owners().tolist() if s in window and s != m._order[0])
+    T0 = m.keyframe_poses()[s0]
+    m.set_keyframe_poses({s0: T0 @ np_se3_exp(np.array([0.05, -0.02, 0.03, 0.1, -0.2, 0.15]))})
+    owed = m.passive.all(m._poses)                 # where they belong now
+    unmoved = m.passive.all({})
+    sel = owed.kf_id == s0
+    assert (owed.means[sel] - unmoved.means[sel]).abs().max() > 0.01
+    if second == "set_poses":
+        T1 = m.keyframe_poses()[s0]
+        m.set_keyframe_poses({s0: T1 @ np_se3_exp(np.array([0.0, 0.04, 0.0, 0.2, 0.1, 0.0]))},
+                             move_gaussians=False)
+    else:
+        P = m.keyframe_poses()
+        m.refine_poses(20, mode="single")
+        assert not np.array_equal(P[s0], m.keyframe_poses()[s0])
+    got = m.passive.all(m._poses)
+    for k in ("means", "quats"):
+        assert torch.allclose(got.tensors()[k], owed.tensors()[k], atol=2e-6), k
+
+
 def test_single_refinement_leaves_passive_gaussians_in_place(room_small):
     """``single`` moves only cameras: Gaussians of a refined keyframe stay put, active or passive
     (its passive ones must not follow the pose change when they come back)."""
@@ -664,6 +728,38 @@ def test_ply_leaves_out_non_finite_splats(tmp_path):
     assert write_ply(tmp_path / "m.ply", gm) == 27
     v = read_ply(tmp_path / "m.ply")
     assert len(v["x"]) == 27 and all(np.isfinite(a).all() for a in v.values())
+
+
+def test_damaged_or_foreign_checkpoint_entries_are_input_errors_naming_the_file(tmp_path, room_small):
+    """Entries of an .npz are read lazily: damage inside one, a meta without a field, a plain
+    .npy file, or a config whose SH degree differs from the stored map must all be one InputError
+    naming the file (the mapper node's resume reports VingsErrors, not tracebacks)."""
+    import json
+    import zipfile
+    cam, frames = room_small
+    m = Mapper(MapperConfig(points_per_keyframe=300, iters_per_keyframe=1, sample_ratio=1.0))
+    m.add_keyframe(frames[0])
+    m.train()
+    good = tmp_path / "good.npz"
+    m.save_checkpoint(good)
+    raw = good.read_bytes()
+    info = zipfile.ZipFile(good).getinfo("active/means.npy")
+    off = info.header_offset + 30 + len(info.filename) + len(info.extra) + 200
+    flipped = bytearray(raw)
+    flipped[off] ^= 0xFF
+    (tmp_path / "flip.npz").write_bytes(bytes(flipped))
+    with np.load(good) as z:
+        entries = {k: z[k] for k in z.files}
+    meta = json.loads(bytes(entries["meta"]).decode())
+    del meta["config"]
+    np.savez(tmp_path / "noconfig.npz", **{**entries, "meta": np.frombuffer(json.dumps(meta).encode(), np.uint8)})
+    np.save(tmp_path / "plain.npy", np.zeros(3))
+    for name in ("flip.npz", "noconfig.npz", "plain.npy"):
+        with pytest.raises(InputError, match=f"{name}: not a VINGS map checkpoint"):
+            Mapper.load_checkpoint(tmp_path / name)
+    with pytest.raises(InputError, match="good.npz: checkpoint holds SH of degree 0, the config 1"):
+        Mapper.load_checkpoint(good, MapperConfig(points_per_keyframe=300, sh_degree=1))
+    assert len(Mapper.load_checkpoint(good).gm) == len(m.gm)
 
 
 def test_bad_checkpoint_and_bad_keyframes_give_clear_errors(tmp_path, room_small):
@@ -1123,21 +1219,17 @@ def test_history_store_lost_spill_file_is_reported_and_dropped(tmp_path, caplog)
     assert not list(tmp_path.glob("vings_history_*"))
 
 
-def test_history_store_failed_spill_keeps_the_record_in_memory(tmp_path, monkeypatch, caplog):
-    from vings_core.mapping import storage
+def test_history_store_failed_spill_keeps_the_record_in_memory(tmp_path, caplog):
     from vings_core.mapping.history import HistoryStore, compact_keyframe
     cam = _cam(32, 24)
     store = HistoryStore(0, str(tmp_path))
     rec = compact_keyframe(_kf(7, np.eye(4), torch.full((24, 32), 2.0), cam))
-
-    def full(*a, **k):
-        raise OSError(28, "No space left on device")
-    monkeypatch.setattr(storage.SpillFolder, "write", full)
+    d = _break_spill_folder(store._folder)     # a real failing write (disk full, folder removed)
     with caplog.at_level("WARNING"):
         store.put(7, rec)
     assert "cannot spill" in caplog.text and store.num_spilled == 0
     assert store.memory_bytes == 32 * 24 * 8 and torch.equal(store.get(7)["image"], rec["image"])
-    monkeypatch.undo()
+    _mend_spill_folder(d)
     store.put(8, rec)          # the disk is back: both spill now
     assert store.num_spilled == 2 and store.memory_bytes == 0
     assert torch.equal(store.get(7)["depth"], rec["depth"])

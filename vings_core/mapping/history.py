@@ -16,7 +16,7 @@ from typing import Iterable, Optional
 import numpy as np
 import torch
 
-from ..errors import InputError
+from ..errors import InputError, VingsError
 from ..types import CameraModel, Keyframe
 from ..util import log
 from .storage import SpillFolder
@@ -169,7 +169,7 @@ class HistoryStore:
                 rec = self._mem[s]        # written before it leaves memory: a failed write loses nothing
                 try:
                     self._files[s] = self._folder.write(f"kf_{s}.npz", {k: rec[k].numpy() for k in FIELDS})
-                except OSError as e:
+                except VingsError as e:     # disk full, folder gone (SpillFolder.write)
                     log.warning("history keyframes: cannot spill to disk (%s); kept in memory over "
                                 "history_memory_mb", e)
                     return

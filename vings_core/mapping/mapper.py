@@ -118,12 +118,13 @@ class Mapper:
             raise InputError(f"set_keyframe_poses: unknown keyframe stamps {unknown[:5]}")
         # every pose checked before any is applied: a bad one leaves the map as it was
         checked = {s: _check_pose(T, f"set_keyframe_poses[{s}]") for s, T in poses.items()}
-        deltas = {}
+        deltas, changes = {}, {}
         for s, T in checked.items():
             old = self._poses[int(s)]
             if np.array_equal(T, old):
                 continue
             deltas[int(s)] = T @ np.linalg.inv(old)
+            changes[int(s)] = (old, T.copy())
             self._poses[int(s)] = T.copy()
         if not deltas:
             return
@@ -133,8 +134,8 @@ class Mapper:
         if move_gaussians and len(self.gm):
             self._move_active_by_owner(deltas)
         if not move_gaussians:
-            # passive Gaussians must not follow either: re-snapshot their owners
-            self.passive.resnapshot({s: self._poses[s] for s in deltas})
+            # passive Gaussians must not follow either (a move still pending for them stays)
+            self.passive.resnapshot(changes)
 
     def add_keyframe(self, kf: Keyframe) -> dict:
         """Insert a keyframe: tier update (every ``delta_k``), render it, delete conflicting Gaussians,
@@ -339,49 +340,61 @@ class Mapper:
     def load_checkpoint(path: str | os.PathLike, config: Optional[MapperConfig] = None,
                         device: str = "cpu") -> "Mapper":
         """Restore a mapper saved by :meth:`save_checkpoint`. ``config`` overrides the stored one
-        (None = the stored config)."""
+        (None = the stored config); it must keep the stored ``window_size`` and ``sh_degree``. A
+        missing, damaged or foreign file raises :class:`InputError` naming it."""
         path = Path(path)
         if not path.is_file():
             raise InputError(f"{path}: map checkpoint not found")
         try:
             z = np.load(path, allow_pickle=False)
-            meta = json.loads(bytes(z["meta"]).decode())
-        except NPZ_READ_ERRORS as e:
-            raise InputError(f"{path}: not a VINGS map checkpoint ({type(e).__name__}: {e})") from None
-        if meta.get("version") != CHECKPOINT_VERSION:
-            raise InputError(f"{path}: checkpoint version {meta.get('version')} not supported")
+            if not isinstance(z, np.lib.npyio.NpzFile):
+                raise InputError(f"{path}: not a VINGS map checkpoint (a single .npy array, not an .npz)")
+            with z:
+                return Mapper._from_npz(z, path, config, device)
+        except _BAD_CHECKPOINT as e:
+            raise InputError(f"{path}: not a VINGS map checkpoint, or damaged "
+                             f"({type(e).__name__}: {e})") from None
+
+    @staticmethod
+    def _from_npz(z, path: Path, config: Optional[MapperConfig], device: str) -> "Mapper":
+        """The body of :meth:`load_checkpoint`; entries are read lazily, so every read is in here."""
+        meta = json.loads(bytes(z["meta"]).decode())
+        if not isinstance(meta, dict) or meta.get("version") != CHECKPOINT_VERSION:
+            v = meta.get("version") if isinstance(meta, dict) else None
+            raise InputError(f"{path}: checkpoint version {v} not supported")
         cfg = config if config is not None else config_from_dict(MapperConfig, meta["config"], f"{path}: config")
         m = Mapper(cfg, device)
-        try:
-            m.gm = GaussianMap.from_numpy({k: z[f"active/{k}"] for k in ALL_FIELDS}, device)
-            pas = GaussianMap.from_numpy({k: z[f"passive/{k}"] for k in ALL_FIELDS})
-            stamps = z["kf/stamps"]
-            Ts = z["kf/T_wc"]
-            m._order = [int(s) for s in stamps]
-            m._poses = {int(s): np.array(T) for s, T in zip(stamps, Ts)}
-            m.camera = CameraModel.from_dict(meta["camera"]) if meta["camera"] else None
-            for i in range(int(meta["window"])):
-                p = f"win{i}/"
-                kf = Keyframe(stamp_ns=int(z[p + "stamp"]), image=torch.from_numpy(z[p + "image"]),
-                              T_wc=torch.from_numpy(z[p + "T_wc"]), depth=torch.from_numpy(z[p + "depth"]),
-                              inv_depth_var=torch.from_numpy(z[p + "inv_depth_var"]),
-                              valid=torch.from_numpy(z[p + "valid"]), camera=m.camera, index=int(z[p + "index"]))
-                m.window.append(kf)
-                lm = z[p + "loss_map"]
-                if lm.size:
-                    m._loss_maps[kf.stamp_ns] = torch.from_numpy(lm)
-            m.rng.set_state(torch.from_numpy(z["rng_state"]))
-            stacked = {k: z[f"hist/{k}"] for k in HISTORY_FIELDS} if "hist/image" in z.files else None  # older layout
-            for j, (s_, ix) in enumerate(zip(z["hist/stamps"].tolist(), z["hist/index"].tolist())):
-                rec = {k: torch.from_numpy(np.array(stacked[k][j]) if stacked is not None else z[f"hist/{s_}/{k}"])
-                       for k in HISTORY_FIELDS}
-                m._history.put(int(s_), {**rec, "index": int(ix)})
-            if "pose_adam/v_shared" in z:
-                m._pose_v = np.array(z["pose_adam/v_shared"], dtype=np.float64)
-            m._pose_adam = {int(s): (np.array(a), np.array(b), int(c)) for s, a, b, c in
-                            zip(z["pose_adam/stamps"], z["pose_adam/m"], z["pose_adam/v"], z["pose_adam/steps"])}
-        except KeyError as e:
-            raise InputError(f"{path}: checkpoint lacks field {e}") from None
+        m.gm = GaussianMap.from_numpy({k: z[f"active/{k}"] for k in ALL_FIELDS}, device)
+        pas = GaussianMap.from_numpy({k: z[f"passive/{k}"] for k in ALL_FIELDS})
+        want_sh = (cfg.sh_degree + 1) ** 2
+        if m.gm.sh.shape[1] != want_sh or pas.sh.shape[1] != want_sh:
+            raise InputError(f"{path}: checkpoint holds SH of degree {math.isqrt(m.gm.sh.shape[1]) - 1}, "
+                             f"the config {cfg.sh_degree}; load it with the same sh_degree")
+        stamps = z["kf/stamps"]
+        Ts = z["kf/T_wc"]
+        m._order = [int(s) for s in stamps]
+        m._poses = {int(s): np.array(T) for s, T in zip(stamps, Ts)}
+        m.camera = CameraModel.from_dict(meta["camera"]) if meta["camera"] else None
+        for i in range(int(meta["window"])):
+            p = f"win{i}/"
+            kf = Keyframe(stamp_ns=int(z[p + "stamp"]), image=torch.from_numpy(z[p + "image"]),
+                          T_wc=torch.from_numpy(z[p + "T_wc"]), depth=torch.from_numpy(z[p + "depth"]),
+                          inv_depth_var=torch.from_numpy(z[p + "inv_depth_var"]),
+                          valid=torch.from_numpy(z[p + "valid"]), camera=m.camera, index=int(z[p + "index"]))
+            m.window.append(kf)
+            lm = z[p + "loss_map"]
+            if lm.size:
+                m._loss_maps[kf.stamp_ns] = torch.from_numpy(lm)
+        m.rng.set_state(torch.from_numpy(z["rng_state"]))
+        stacked = {k: z[f"hist/{k}"] for k in HISTORY_FIELDS} if "hist/image" in z.files else None  # older layout
+        for j, (s_, ix) in enumerate(zip(z["hist/stamps"].tolist(), z["hist/index"].tolist())):
+            rec = {k: torch.from_numpy(np.array(stacked[k][j]) if stacked is not None else z[f"hist/{s_}/{k}"])
+                   for k in HISTORY_FIELDS}
+            m._history.put(int(s_), {**rec, "index": int(ix)})
+        if "pose_adam/v_shared" in z:
+            m._pose_v = np.array(z["pose_adam/v_shared"], dtype=np.float64)
+        m._pose_adam = {int(s): (np.array(a), np.array(b), int(c)) for s, a, b, c in
+                        zip(z["pose_adam/stamps"], z["pose_adam/m"], z["pose_adam/v"], z["pose_adam/steps"])}
         if "passive_chunks/chunk" in z:
             if len(pas):
                 m.passive.restore({**{k: z[f"passive/{k}"] for k in ALL_FIELDS},
@@ -865,11 +878,12 @@ class Mapper:
         if moved.numel() == 0:
             return
         D = se3_exp(xi[moved]).numpy()
-        deltas = {}
+        deltas, changes = {}, {}
         for j, i in enumerate(moved.tolist()):
             s = int(owners[i])
             new = self._poses[s] @ D[j]
             deltas[s] = new @ np.linalg.inv(self._poses[s])   # world-frame motion (for the Gaussians)
+            changes[s] = (self._poses[s], new)
             self._poses[s] = new
         for kf in self.window:
             if kf.stamp_ns in deltas:
@@ -878,7 +892,12 @@ class Mapper:
             self._move_active_by_owner(deltas)
         else:
             # single: only the cameras move; the owners' passive Gaussians stay too
-            self.passive.resnapshot({s: self._poses[s] for s in deltas})
+            self.passive.resnapshot(changes)
+
+
+# what reading a damaged or foreign .npz can raise (entries are read lazily, anywhere in the body)
+_BAD_CHECKPOINT = NPZ_READ_ERRORS + (IndexError, TypeError, AttributeError, UnicodeDecodeError,
+                                     RuntimeError)
 
 
 def _write_npy(zf: "zipfile.ZipFile", name: str, a) -> None:

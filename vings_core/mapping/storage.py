@@ -24,7 +24,7 @@ from typing import Callable, Optional
 import numpy as np
 import torch
 
-from ..errors import ConfigError, InputError
+from ..errors import ConfigError, InputError, VingsError
 from ..util import NPZ_READ_ERRORS, atomic_write, log
 from .gaussians import ALL_FIELDS, GaussianMap
 
@@ -94,7 +94,8 @@ class SpillFolder:
         return self._dir / name
 
     def write(self, name: str, arrays: dict) -> Path:
-        """Write ``arrays`` to ``name`` atomically; returns its path."""
+        """Write ``arrays`` to ``name`` atomically; returns its path. A failed write (disk full,
+        folder gone) raises :class:`VingsError` naming the file and leaves no partial file."""
         path = self.path(name)
 
         def _w(tmp: str) -> None:
@@ -276,14 +277,17 @@ class PassiveStore:
             snap = {int(s): T for s, T in zip(state["owners"][own], state["owner_T"][own])}
             self.put(GaussianMap.from_numpy({name: state[name][rows] for name in ALL_FIELDS}), snap)
 
-    def resnapshot(self, poses: dict[int, np.ndarray]) -> None:
-        """Take ``poses`` (stamp -> T_wc) as the poses the stored Gaussians of those owners were stored
-        under: a later pose change moves them by the change from these, so a pose change made
-        without moving the map leaves them where they are."""
+    def resnapshot(self, changes: dict[int, tuple[np.ndarray, np.ndarray]]) -> None:
+        """Owner pose changes that must not move the stored Gaussians: ``changes`` maps stamp ->
+        ``(T_old, T_new)`` (``T_wc``). A snapshot ``S`` becomes ``S T_old^-1 T_new`` (``T_new``
+        itself when ``S`` is ``T_old``), so the move applied when they come back (``T_now S^-1``)
+        stays the one still pending from earlier moving changes, if any, and gains nothing."""
         for c in self.chunks:
             for i, s in enumerate(c.owners):
-                if int(s) in poses:
-                    c.owner_T[i] = poses[int(s)]
+                if int(s) in changes:
+                    T_old, T_new = changes[int(s)]
+                    S = c.owner_T[i]
+                    c.owner_T[i] = T_new if np.array_equal(S, T_old) else S @ np.linalg.inv(T_old) @ T_new
 
     def clear(self) -> None:
         for c in self.chunks:
@@ -303,7 +307,12 @@ class PassiveStore:
                 break
             if c.arrays is None:
                 continue
-            c.path = self._folder.write(f"chunk_{c.cid:08d}.npz", c.arrays)
+            try:
+                c.path = self._folder.write(f"chunk_{c.cid:08d}.npz", c.arrays)
+            except VingsError as e:     # disk full, folder gone: the chunk stays in memory
+                log.warning("passive Gaussians: cannot spill to disk (%s); kept in memory over "
+                            "passive_memory_mb", e)
+                return
             c.arrays = None
             self.spilled_total += 1
 
