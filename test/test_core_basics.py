@@ -253,6 +253,19 @@ def test_launch_never_overwrites_a_recording(tmp_path):
         Launcher(LaunchOptions(record="/proc/vings/out.mcap"))
 
 
+def test_launch_reads_the_params_file_first_and_waits_for_the_mappers_drain(tmp_path):
+    from vings_ros.launch import MAPPER_SAVE_MARGIN_S, STOP_TIMEOUT_S, Launcher, LaunchOptions
+    p = tmp_path / "p.yaml"
+    p.write_text("/**:\n  ros__parameters:\n    ros:\n      shutdown_timeout_s: 600.0\n")
+    assert Launcher(LaunchOptions(params_file=str(p))).stop_timeout["mapper_node"] == 600 + MAPPER_SAVE_MARGIN_S
+    assert Launcher(LaunchOptions()).stop_timeout == STOP_TIMEOUT_S
+    opt = LaunchOptions(params_file=str(p), extra_params={"ros.shutdown_timeout_s": 1000.0})
+    assert Launcher(opt).stop_timeout["mapper_node"] == 1000 + MAPPER_SAVE_MARGIN_S
+    p.write_text("/**:\n  ros__parameters:\n    mapping: {background: [0, 1, 0.5]}\n")
+    with pytest.raises(ConfigError, match="p.yaml: mapping.background"):
+        Launcher(LaunchOptions(params_file=str(p)))
+
+
 @pytest.mark.parametrize("theta", [1.01e-4, 2e-4, 1e-3, 5e-3, 0.3])
 def test_se3_exp_is_accurate_in_float32_just_above_the_series_cutoff(theta):
     """(1 - cos t)/t^2 and (t - sin t)/t^3 cancel in float32 near t = 1e-4 (translation off by ~1000

@@ -112,8 +112,11 @@ def test_prepare_checks_the_folder_and_the_end_clears_a_previous_runs_marker(tmp
     out.save_render("kf_1", np.zeros((4, 4, 3), np.uint8))
     out.save_render("figure", np.zeros((4, 4, 3), np.uint8))
     (out.renders_dir / "notes.txt").write_text("mine")
+    killed = out.out_dir / ".map.ply.k3j9x.tmp"   # a run killed while writing map.ply
+    killed.write_bytes(b"half a map")
     out.prepare()                                # a new run into the same folder: nothing removed yet
     assert out.metrics_path.exists() and (out.renders_dir / "kf_1.png").exists()
+    assert not killed.exists()                   # but the dead writer's temporary file is
     out.begin_final()                            # its final outputs come next
     assert not out.metrics_path.exists()         # no stale "complete run" marker
     assert sorted(p.name for p in out.renders_dir.iterdir()) == ["figure.png", "notes.txt"]

@@ -75,3 +75,33 @@ def test_input_queue_policies():
     for i in range(4):
         b.put(i)
     assert [b.get(0) for _ in range(3)] == [1, 2, 3] and b.dropped == 1
+
+
+def test_lists_rcl_cannot_hold_are_refused_with_the_key(tmp_path):
+    """rcl refuses mixed-type and empty lists when a node starts; `vings run --params` and the
+    launcher read the same file, so they refuse it too (one file, one meaning)."""
+    p = tmp_path / "p.yaml"
+    p.write_text("/**:\n  ros__parameters:\n    mapping:\n      background: [0, 0.5, 0]\n")
+    with pytest.raises(ConfigError, match=r"p.yaml: mapping.background: ROS 2 list parameters hold one "
+                                          r"scalar type.*write floats as 0.0"):
+        read_params_file(p)
+    p.write_text("/**:\n  ros__parameters:\n    mapping.background: []\n")
+    with pytest.raises(ConfigError, match=r"mapping.background: an empty list"):
+        read_params_file(p)
+    p.write_text("/**:\n  ros__parameters:\n    mapping:\n      background: [0.0, 0.5, 0.0]\n")
+    assert read_params_file(p)["mapping"]["background"] == [0.0, 0.5, 0.0]
+
+
+@pytest.mark.parametrize("key,value,match", [
+    ("diagnostics_period_s", 0.0, "diagnostics_period_s must be > 0"),
+    ("diagnostics_period_s", -1.0, "diagnostics_period_s must be > 0"),
+    ("max_points", -1, "max_points"),
+    ("world_frame", "", "world_frame must be a frame id"),
+    ("camera_frame", "/cam", "camera_frame must be a frame id"),
+])
+def test_node_settings_that_fail_later_are_refused_at_start(tmp_path, key, value, match):
+    from vings_ros.node_common import NodeConfig
+    p = tmp_path / "p.yaml"
+    p.write_text(yaml.safe_dump({"/**": {"ros__parameters": {"ros": {key: value}}}}))
+    with pytest.raises(ConfigError, match=match):
+        load_section(NodeConfig, "ros", p)

@@ -126,3 +126,114 @@ def test_frontend_node_waits_past_an_uncalibrated_camera_info():
 def test_mapper_node_drops_a_malformed_keyframe_part():
     res = _run(MAPPER_SCRIPT)
     assert res == {"bad_parts": 2, "error": None}, res
+
+
+CAMERA_CHANGE_SCRIPT = """
+import json, math, time
+import numpy as np, rclpy
+from sensor_msgs.msg import CameraInfo, Imu
+import msg_adapters as ma
+from msg_adapters.diagnostics import parse_diagnostic_array
+rclpy.init(args=["x", "--ros-args", "-p", "ros.queue_policy:=backpressure"])
+from vings_ros.frontend_node import FrontendNode
+node = FrontendNode()
+sent = []
+node.pub_diag.publish = sent.append         # capture /diagnostics
+def info(w, h):
+    m = CameraInfo(width=w, height=h, distortion_model="plumb_bob")
+    m.k = [0.8 * w, 0.0, (w - 1) / 2, 0.0, 0.8 * w, (h - 1) / 2, 0.0, 0.0, 1.0]
+    m.d = [0.0] * 5
+    return m
+rng = np.random.default_rng(0)
+def img(stamp, w, h):
+    return ma.image_to_msg(rng.integers(0, 256, (h, w), dtype=np.uint8), stamp, "cam")
+def drain():
+    t0 = time.time()
+    while time.time() - t0 < 60 and node.error is None and len(node.queue):
+        time.sleep(0.05)
+    time.sleep(0.3)
+node._on_camera_info(info(64, 48))
+for i in range(2):
+    node._on_image(img(10**9 + i * 10**8, 64, 48))
+drain()
+node._publish_diagnostics()
+node._on_camera_info(info(32, 24))        # the camera changes while running
+for i in range(2, 8):
+    node._on_image(img(10**9 + i * 10**8, 32, 24))
+drain()
+node._publish_diagnostics()
+bad = Imu()
+bad.header.stamp.sec = 1
+bad.angular_velocity.x = math.nan
+good = Imu()
+good.header.stamp.sec = 1
+good.linear_acceleration.z = 9.81
+node._on_imu(bad)
+node._on_imu(good)
+st = [parse_diagnostic_array(m)["status"]["vings/frontend"] for m in sent]
+res = {"levels": [s["level"] for s in st], "message": st[-1]["message"],
+       "camera_changes": node.camera_changes, "raw_width": node.raw_camera.width,
+       "bad_streak": node.bad_streak, "imu": [node.imu_count, node.bad_imu],
+       "error": repr(node.error) if node.error else None}
+node.queue.close(); node.worker.stop(5)
+node.destroy_node(); rclpy.shutdown()
+print("RESULT " + json.dumps(res))
+"""
+
+
+def test_frontend_node_reports_a_camera_change_and_checks_imu():
+    res = _run(CAMERA_CHANGE_SCRIPT)
+    assert res["error"] is None and res["raw_width"] == 64 and res["camera_changes"] == 1, res
+    assert res["bad_streak"] == 6 and res["levels"][-1] == "error", res
+    assert res["levels"][0] != "error", res
+    assert "the last 6 images were skipped" in res["message"] and "32x24" in res["message"], res
+    assert res["imu"] == [1, 1], res      # the NaN sample is counted as bad, not as a sample
+
+
+START_ERROR_SCRIPT = """
+import json, sys
+import rclpy
+rclpy.init(args=["x", "--ros-args"] + sys.argv[2:])
+from vings_core.errors import VingsError
+from vings_ros.frontend_node import FrontendNode
+from vings_ros.mapper_node import MapperNode
+try:
+    {"frontend": FrontendNode, "mapper": MapperNode}[sys.argv[1]]()
+    res = {"error": None}
+except VingsError as e:
+    res = {"error": type(e).__name__ + ": " + str(e)}
+rclpy.shutdown()
+print("RESULT " + json.dumps(res))
+"""
+
+
+def test_nodes_refuse_outputs_and_models_they_would_fail_on_later(tmp_path):
+    # a checkpoint path that cannot be written: refused at start, not at the first checkpoint
+    blocker = tmp_path / "file"
+    blocker.write_text("x")
+    res = _run(START_ERROR_SCRIPT, "mapper", "-p", f"ros.checkpoint_path:={blocker}/sub/ckpt.npz")
+    assert res["error"] and res["error"].startswith("ConfigError: ros.checkpoint_path"), res
+    # a temporary file of a mapper killed mid-write is removed at start
+    ck = tmp_path / "ok" / "map.npz"
+    ck.parent.mkdir()
+    stale = ck.parent / ".map.npz.abc123.tmp"
+    stale.write_bytes(b"half a checkpoint")
+    other = ck.parent / ".other.npz.abc123.tmp"
+    other.write_bytes(b"not ours")
+    res = _run(START_ERROR_SCRIPT, "mapper", "-p", f"ros.checkpoint_path:={ck}")
+    assert res["error"] is None and not stale.exists() and other.exists(), res
+    # a learned flow model that is not there: refused at start, not when the camera appears
+    res = _run(START_ERROR_SCRIPT, "frontend", "-p", "frontend.flow_method:=torchscript",
+               "-p", f"frontend.flow_weights_path:={tmp_path / 'raft.pt'}")
+    assert res["error"] and "frontend.flow_weights_path" in res["error"] and "not found" in res["error"], res
+
+
+def test_node_with_a_params_file_rcl_cannot_parse_exits_with_one_line(tmp_path):
+    p = tmp_path / "mixed.yaml"
+    p.write_text("/**:\n  ros__parameters:\n    mapping:\n      background: [0, 0.5, 0]\n")
+    env = dict(os.environ, ROS_DOMAIN_ID=str(150 + os.getpid() % 50),
+               ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST", PYTHONPATH=str(REPO))
+    r = subprocess.run([sys.executable, "-m", "vings_ros.mapper_node", "--ros-args", "--params-file", str(p)],
+                       env=env, cwd=REPO, capture_output=True, text=True, timeout=120)
+    assert r.returncode == 2, r.stderr
+    assert "mixed.yaml: mapping.background" in r.stderr and "Traceback" not in r.stderr, r.stderr

@@ -58,12 +58,31 @@ def read_params_file(path: str | os.PathLike, sections: tuple = KNOWN_SECTIONS) 
             raise ConfigError(f"{path}: node block {node!r}: 'ros__parameters' must be a mapping of "
                               f"sections, got {params!r}")
         _deep_merge(merged, _expand_dotted(params, f"{path}: node block {node!r}"))
+    _check_ros_lists(merged, f"{path}")
     unknown = [k for k in merged if k not in sections]
     if unknown:
         raise ConfigError(f"{path}: unknown parameter section(s) {', '.join(map(repr, unknown))}; "
                           f"parameters live in the sections {', '.join(sections)} "
                           f"(e.g. mapping: {{window_size: 8}} or mapping.window_size: 8)")
     return merged
+
+
+def _check_ros_lists(d: dict, where: str, prefix: str = "") -> None:
+    """Lists as ROS 2 parameters can hold them: non-empty, one scalar type (rcl refuses ``[0, 0.5]``
+    and ``[]`` when a node starts, so ``vings run --params`` refuses them too: one file, one meaning)."""
+    for k, v in d.items():
+        name = f"{prefix}{k}"
+        if isinstance(v, dict):
+            _check_ros_lists(v, where, name + ".")
+        elif isinstance(v, list):
+            if not v:
+                raise ConfigError(f"{where}: {name}: an empty list is not a valid ROS 2 parameter; "
+                                  f"leave the key out for the default")
+            kinds = {type(x) for x in v}
+            if len(kinds) > 1 or not kinds <= {bool, int, float, str}:
+                raise ConfigError(f"{where}: {name}: ROS 2 list parameters hold one scalar type, got "
+                                  f"{v!r} ({', '.join(sorted(t.__name__ for t in kinds))}); write "
+                                  f"floats as 0.0, not 0")
 
 
 def _expand_dotted(d: dict, where: str) -> dict:

@@ -6,6 +6,7 @@ import logging
 import os
 import tempfile
 import zipfile
+from glob import escape as glob_escape
 from pathlib import Path
 from typing import Any, Callable
 
@@ -50,6 +51,21 @@ def atomic_write(path: str | os.PathLike, write: Callable[[str], None]) -> None:
         if isinstance(e, OSError):
             raise VingsError(f"{path}: cannot write ({e.strerror or e})") from e
         raise
+
+
+def remove_stale_temps(path: str | os.PathLike) -> int:
+    """Delete the temporary files :func:`atomic_write` left beside ``path`` when its process was
+    killed mid-write (``.<name>.*.tmp``); call it before a process starts writing ``path``.
+    Returns how many were removed."""
+    path = Path(path)
+    n = 0
+    for tmp in path.parent.glob(f".{glob_escape(path.name)}.*.tmp"):
+        try:
+            tmp.unlink()
+            n += 1
+        except OSError:
+            pass
+    return n
 
 
 def read_utf8_text(path: str | os.PathLike, kind: str, error: type = VingsError) -> str:

@@ -18,8 +18,9 @@ from std_msgs.msg import Header
 
 from msg_adapters import topics as T
 from msg_adapters.camera_info import camera_info_to_camera
-from msg_adapters.diagnostics import diagnostic_array, tracking_status
+from msg_adapters.diagnostics import diagnostic_array, make_status, tracking_status
 from msg_adapters.image import FrameDecoder
+from msg_adapters.imu import msg_to_imu_sample
 from msg_adapters.keyframe import keyframe_to_msgs, PART_TOPICS
 from msg_adapters.pose import estimate_to_odometry, path_to_trajectory, trajectory_to_path
 from msg_adapters.stamps import header_ns
@@ -27,6 +28,7 @@ from nav_msgs.msg import Odometry
 from diagnostic_msgs.msg import DiagnosticArray
 from vings_core.errors import InputError
 from vings_core.frontend import Frontend, FrontendConfig
+from vings_core.frontend.flow import make_flow_estimator
 from vings_core.io.calib_yaml import is_rectified_topic, load_calibration_yaml
 from vings_core.io.undistort import Undistorter
 from vings_core.pipeline import FrontendPoseLink, PoseCorrections, RunConfig
@@ -38,6 +40,8 @@ from .node_common import (InputQueue, NodeConfig, RateMeter, Worker, node_sectio
 #: front-end keyframe poses after later window BA moved them (nav_msgs/Path, each pose stamped with
 #: its keyframe stamp); the mapper applies them as increments (vings_core.pipeline.MapperPoseLink).
 FRONTEND_KEYFRAMES_TOPIC = T.FRONTEND_KEYFRAMES_TOPIC
+#: consecutive skipped images after which /diagnostics reports an error
+BAD_STREAK_ERROR = 5
 
 
 class FrontendNode(Node):
@@ -62,9 +66,17 @@ class FrontendNode(Node):
         self._lock = threading.Lock()
         self.rate = RateMeter()
         self.imu_count = 0
+        self.bad_imu = 0
         self.frames_without_camera = 0
         self.bad_frames = 0
+        self.bad_streak = 0             # images skipped since the last one processed
+        self._last_skip = ""
         self.bad_camera_infos = 0
+        self.camera_changes = 0         # CameraInfo messages that differ from the camera in use
+        self._camera_from_info = False
+        # made now (a learned model loads its weights file): a wrong path is a start-up error, not
+        # one that ends the node when the camera appears
+        self._flow = make_flow_estimator(self.fcfg)
         self._last_stamp: Optional[int] = None
         self.last_state = "waiting"
         if self.ncfg.calib_file:
@@ -107,20 +119,39 @@ class FrontendNode(Node):
         self.queue.put(msg)
 
     def _on_camera_info(self, msg: CameraInfo) -> None:
+        if self.raw_camera is not None and not self._camera_from_info:
+            return      # ros.calib_file gives the camera
+        try:
+            cam = camera_info_to_camera(msg, T.CAMERA_INFO_TOPIC, self._rectified)
+        except InputError as e:
+            # e.g. a driver that publishes K = 0 until its calibration is loaded: keep waiting
+            self.bad_camera_infos += 1
+            if _report(self.bad_camera_infos):
+                self.get_logger().warning(f"ignored {self.bad_camera_infos} unusable "
+                                          f"{T.CAMERA_INFO_TOPIC} message(s): {e}")
+            return
         if self.raw_camera is None:
-            try:
-                cam = camera_info_to_camera(msg, T.CAMERA_INFO_TOPIC, self._rectified)
-            except InputError as e:
-                # e.g. a driver that publishes K = 0 until its calibration is loaded: keep waiting
-                self.bad_camera_infos += 1
-                if _report(self.bad_camera_infos):
-                    self.get_logger().warning(f"ignored {self.bad_camera_infos} unusable "
-                                              f"{T.CAMERA_INFO_TOPIC} message(s): {e}")
-                return
+            self._camera_from_info = True
             self._set_camera(cam)
+        elif cam != self.raw_camera:
+            # the map and the front end's state belong to the first camera: keep it
+            self.camera_changes += 1
+            if _report(self.camera_changes):
+                r = self.raw_camera
+                self.get_logger().warning(
+                    f"{T.CAMERA_INFO_TOPIC} changed ({cam.width}x{cam.height}, fx {cam.fx:.6g}) from the "
+                    f"camera in use ({r.width}x{r.height}, fx {r.fx:.6g}); the front end keeps the first "
+                    f"one: restart the nodes for a new camera ({self.camera_changes} such message(s))")
 
     def _on_imu(self, msg: Imu) -> None:
-        # The IMU is fused in a later stage of the front end; samples are counted for diagnostics.
+        # The IMU is fused in a later stage of the front end; samples are checked and counted.
+        try:
+            msg_to_imu_sample(msg, T.IMU_TOPIC)
+        except InputError as e:
+            self.bad_imu += 1
+            if _report(self.bad_imu):
+                self.get_logger().warning(f"bad IMU message ({self.bad_imu} so far): {e}")
+            return
         self.imu_count += 1
 
     def _on_corrections(self, msg: Path) -> None:
@@ -138,7 +169,7 @@ class FrontendNode(Node):
         h = self.ncfg.height or None
         self.undist = Undistorter(raw, w, h, undistort=True)
         self.raw_camera = raw
-        self.frontend = Frontend(self.fcfg, self.undist.camera)
+        self.frontend = Frontend(self.fcfg, self.undist.camera, flow=self._flow)
         cam = self.undist.camera
         self._camera_ready.set()
         self.get_logger().info(f"camera {raw.width}x{raw.height} -> working {cam.width}x{cam.height}")
@@ -183,6 +214,7 @@ class FrontendNode(Node):
                 self.get_logger().warning(self.decoder.warnings.pop(0))
         frame = Frame(stamp, self.undist(frame.image), self.undist.camera)
         self._last_stamp = stamp
+        self.bad_streak = 0
         self._take_corrections()
         ests = self.frontend.process(frame)
         for est in ests:
@@ -204,6 +236,8 @@ class FrontendNode(Node):
     def _skip(self, msg: Image, why: str) -> None:
         """Drop a bad image: counted, reported (rate-limited), acknowledged."""
         self.bad_frames += 1
+        self.bad_streak += 1
+        self._last_skip = why
         if _report(self.bad_frames):
             self.get_logger().warning(f"{why} ({self.bad_frames} image(s) skipped so far)")
         self._ack(msg.header)
@@ -247,15 +281,22 @@ class FrontendNode(Node):
                   "keyframes": st.get("keyframes", 0), "rate_hz": self.rate.hz,
                   "queue_length": len(self.queue), "queue_policy": self.queue.policy,
                   "frames_dropped": self.queue.dropped, "frames_received": self.queue.received,
-                  "bad_frames": self.bad_frames,
-                  "imu_samples": self.imu_count, "rss_mb": rss_mb(),
+                  "bad_frames": self.bad_frames, "bad_streak": self.bad_streak,
+                  "camera_changes": self.camera_changes,
+                  "imu_samples": self.imu_count, "bad_imu": self.bad_imu, "rss_mb": rss_mb(),
                   "writeback_policy": self.rcfg.pose_writeback,
                   "corrections_received": self.link.stats["corrections"],
                   "corrections_applied": self.link.stats["applied"],
                   "corrections_rejected": self.link.stats["rejected"]}
         stamp = self.get_clock().now().nanoseconds
-        self.pub_diag.publish(diagnostic_array(stamp, [tracking_status(
-            "vings/frontend", st.get("state", "waiting"), values, st.get("reason"))]))
+        state = st.get("state", "waiting")
+        if self.bad_streak >= BAD_STREAK_ERROR:
+            # images arrive but none can be used (wrong size after a camera change, bad encoding)
+            status = make_status("vings/frontend", "error", f"the last {self.bad_streak} images were "
+                                 f"skipped: {self._last_skip}", {"state": state, **values})
+        else:
+            status = tracking_status("vings/frontend", state, values, st.get("reason"))
+        self.pub_diag.publish(diagnostic_array(stamp, [status]))
 
     # -------------------------------------------------------------------------------- shutdown
 

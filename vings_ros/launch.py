@@ -18,6 +18,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Optional, TextIO
 
+from vings_core.config import read_params_file
 from vings_core.errors import ConfigError
 from vings_core.util import check_output_file
 
@@ -25,8 +26,10 @@ from .ros_env import cleanup_fastdds_shm, ros_environment, shm_snapshot
 
 NODES = {"frontend_node": "vings_ros.frontend_node", "mapper_node": "vings_ros.mapper_node",
          "recorder_node": "vings_ros.recorder"}
-#: seconds each node gets to stop after SIGINT before it is killed
+#: seconds each node gets to stop after SIGINT before it is killed (the mapper: at least its
+#: ``ros.shutdown_timeout_s`` to finish queued keyframes, plus MAPPER_SAVE_MARGIN_S to save)
 STOP_TIMEOUT_S = {"frontend_node": 20.0, "mapper_node": 180.0, "recorder_node": 20.0}
+MAPPER_SAVE_MARGIN_S = 60.0
 
 
 @dataclass
@@ -65,8 +68,16 @@ class Launcher:
         self.out = out or sys.stderr
         self.procs: dict[str, subprocess.Popen] = {}
         self._stopping = False
-        if opt.params_file and not Path(opt.params_file).is_file():
-            raise ConfigError(f"{opt.params_file}: params file not found")
+        # read here (one line for a bad file, before any node starts; the nodes read it again)
+        sections = read_params_file(opt.params_file) if opt.params_file else {}
+        drain = opt.extra_params.get("ros.shutdown_timeout_s",
+                                     sections.get("ros", {}).get("shutdown_timeout_s", 120.0))
+        self.stop_timeout = dict(STOP_TIMEOUT_S)
+        try:
+            self.stop_timeout["mapper_node"] = max(STOP_TIMEOUT_S["mapper_node"],
+                                                   float(drain) + MAPPER_SAVE_MARGIN_S)
+        except (TypeError, ValueError):
+            pass        # the mapper node reports the bad value itself
         if opt.record and not str(opt.record).endswith(".mcap"):
             raise ConfigError(f"--record {opt.record}: the output must be a .mcap file")
         if opt.record:      # before any node starts, not when the recorder dies
@@ -114,9 +125,9 @@ class Launcher:
             except ProcessLookupError:
                 continue
             try:
-                p.wait(STOP_TIMEOUT_S[name])
+                p.wait(self.stop_timeout[name])
             except subprocess.TimeoutExpired:
-                self._say(f"{name} did not stop within {STOP_TIMEOUT_S[name]:.0f} s; killing it")
+                self._say(f"{name} did not stop within {self.stop_timeout[name]:.0f} s; killing it")
                 os.killpg(p.pid, signal.SIGKILL)
                 p.wait()
         removed = cleanup_fastdds_shm(self.snapshot)

@@ -12,7 +12,6 @@ from __future__ import annotations
 import os
 import threading
 import time
-from pathlib import Path as FsPath
 from typing import Optional
 
 import numpy as np
@@ -31,10 +30,11 @@ from msg_adapters.markers import keyframe_frustums_marker, marker_array, traject
 from msg_adapters.pointcloud import points_to_pointcloud2
 from msg_adapters.pose import path_to_trajectory, trajectory_to_path
 from msg_adapters.stamps import header_ns
-from vings_core.errors import InputError
+from vings_core.errors import ConfigError, InputError
 from vings_core.mapping import Mapper, MapperConfig
 from vings_core.pipeline import MapperPoseLink, PoseUpdates, map_keyframe
 from vings_core.types import Keyframe, Trajectory
+from vings_core.util import check_output_file, remove_stale_temps
 from .node_common import (InputQueue, NodeConfig, RateMeter, Worker, node_sections, rss_mb,
                           run_node, section_config, worth_reporting)
 
@@ -67,7 +67,11 @@ class MapperNode(Node):
         self.ncfg: NodeConfig = section_config(NodeConfig, secs["ros"], "mapper_node: ros")
         self.mcfg: MapperConfig = section_config(MapperConfig, secs["mapping"], "mapper_node: mapping")
         self.error: Optional[BaseException] = None
-        self.ckpt = FsPath(self.ncfg.checkpoint_path) if self.ncfg.checkpoint_path else None
+        self.ckpt = None
+        if self.ncfg.checkpoint_path:
+            # found unwritable now, not when the first checkpoint is due (that ended the mapper)
+            self.ckpt = check_output_file(self.ncfg.checkpoint_path, "ros.checkpoint_path", ConfigError)
+            remove_stale_temps(self.ckpt)
         lower_priority(self.ncfg.mapper_nice, self.ncfg.mapper_threads)
         self.link = MapperPoseLink()
         self.mapper = self._load_or_new()

@@ -19,7 +19,7 @@ import time
 from dataclasses import dataclass
 from typing import Any, Callable, Generic, Optional, TypeVar
 
-from vings_core.config import KNOWN_SECTIONS, ConfigError, config_from_dict
+from vings_core.config import KNOWN_SECTIONS, ConfigError, config_from_dict, read_params_file
 from vings_core.errors import VingsError
 
 log = logging.getLogger("vings.node")
@@ -84,6 +84,16 @@ class NodeConfig:
             raise ValueError("mapper_threads must be >= 0")
         if self.calib_wait_s < 0 or self.shutdown_timeout_s < 0:
             raise ValueError("calib_wait_s and shutdown_timeout_s must be >= 0")
+        if not self.diagnostics_period_s > 0:
+            raise ValueError(f"diagnostics_period_s must be > 0, got {self.diagnostics_period_s}")
+        if self.points_period_s < 0:
+            raise ValueError("points_period_s must be >= 0")
+        if self.max_points < 0 or self.path_max_poses < 1 or self.render_every_keyframes < 0:
+            raise ValueError("max_points and render_every_keyframes must be >= 0, path_max_poses >= 1")
+        for name in ("world_frame", "camera_frame"):
+            v = getattr(self, name)
+            if not v.strip() or v.startswith("/"):
+                raise ValueError(f"{name} must be a frame id without a leading '/', got {v!r}")
 
 
 #: parameters rclpy declares on every node
@@ -244,7 +254,19 @@ def run_node(make_node: Callable[[], Any], args: Optional[list[str]] = None) -> 
     logging.basicConfig(level=logging.INFO, format="[%(name)s] %(levelname)s %(message)s")
     apply_ros_environment()
     argv = list(sys.argv if args is None else args)
-    rclpy.init(args=argv, signal_handler_options=rclpy.signals.SignalHandlerOptions.NO)
+    files = [argv[i + 1] for i, a in enumerate(argv[:-1]) if a == "--params-file"]
+    try:
+        for f in files:     # rcl parses them in init, with a traceback for a bad file
+            read_params_file(f)
+        rclpy.init(args=argv, signal_handler_options=rclpy.signals.SignalHandlerOptions.NO)
+    except VingsError as e:
+        print(f"vings node: error: {e}", file=sys.stderr)
+        return 2
+    except RuntimeError as e:    # rclpy's RCLError: arguments or a params file rcl cannot parse
+        why = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+        print(f"vings node: error: {', '.join(files) or 'ROS arguments'}: rcl cannot parse them ({why})",
+              file=sys.stderr)
+        return 2
     stop = threading.Event()
 
     def _sig(signum, frame):  # noqa: ARG001

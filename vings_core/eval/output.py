@@ -26,7 +26,7 @@ import numpy as np
 from ..errors import InputError
 from ..trajectory_io import write_tum
 from ..types import Trajectory
-from ..util import atomic_write_bytes, atomic_write_text, log, probe_writable_dir
+from ..util import atomic_write_bytes, atomic_write_text, log, probe_writable_dir, remove_stale_temps
 
 TRAJECTORY_FILE = "trajectory.tum"
 KEYFRAMES_FILE = "keyframes.tum"
@@ -164,6 +164,10 @@ class RunOutput:
             log.warning("%s: removing an interrupted earlier run's partial files %s", self.out_dir,
                         ", ".join(p.name for p in stale))
             self.remove_partials()
+        # temporary files of a process killed while writing (atomic_write's .<name>.*.tmp)
+        for p in (self.checkpoint_path, self.trajectory_path, self.keyframes_path, self.map_path,
+                  self.metrics_path) + self._partial_paths():
+            remove_stale_temps(p)
 
     def _partial_paths(self) -> tuple[Path, ...]:
         return (self.partial_checkpoint_path, self.out_dir / TRAJECTORY_PARTIAL_FILE,

@@ -30,7 +30,7 @@ from ..types import CameraModel, Frame, Keyframe, PoseEstimate, Trajectory
 from . import ba as BA
 from .config import FrontendConfig
 from .depth import dense_depth
-from .flow import (DISFlow, GridFlow, compose_flow, dense_from_grid, flow_around, grid_flow,
+from .flow import (DISFlow, FlowEstimator, GridFlow, compose_flow, dense_from_grid, flow_around, grid_flow,
                    invert_flow, make_flow_estimator, texture_weight)
 from .graph import CovisibilityGraph, Edge, select_edges
 from .projective import Intrinsics, adjoint, grid_points, normalized_rays, project_edges
@@ -133,7 +133,10 @@ class Frontend:
     (:class:`~vings_core.frontend.ba.PoseSystem`) for fusion with other factors.
     """
 
-    def __init__(self, config: Optional[FrontendConfig], camera: CameraModel):
+    def __init__(self, config: Optional[FrontendConfig], camera: CameraModel,
+                 flow: Optional[FlowEstimator] = None):
+        """``flow``: the flow estimator to use (default: made from ``config``; a node builds it at
+        start so a bad ``flow_weights_path`` is reported before the camera is known)."""
         self.cfg = config or FrontendConfig()
         self.cfg.validate()
         if camera.is_distorted:
@@ -150,7 +153,7 @@ class Frontend:
         self.P = self.uv.shape[0]
         self.uv_np = self.uv.numpy()
         self.rays = normalized_rays(self.uv, self.K)
-        self.flow_est = make_flow_estimator(self.cfg)
+        self.flow_est = flow if flow is not None else make_flow_estimator(self.cfg)
         self.chain_est = DISFlow(self.cfg.chain_preset, None)
         self.info_scale = 1.0 / self.cfg.flow_sigma_px ** 2
 
