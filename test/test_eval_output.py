@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -220,7 +221,7 @@ def _failing(src, at):
     return src
 
 
-def test_failed_rerun_keeps_the_previous_complete_run(tmp_path):
+def test_failed_rerun_keeps_the_previous_complete_run(tmp_path, monkeypatch):
     """A second run into the same folder that fails part-way leaves the first run's outputs
     complete and readable (nothing removed up front), and writes its trajectory so far beside
     them; a later successful run replaces everything and removes the partial files, but not
@@ -244,6 +245,26 @@ def test_failed_rerun_keeps_the_previous_complete_run(tmp_path):
     part = (out / "trajectory.partial.tum").read_text().splitlines()
     assert 5 < len(part) <= 37 and len((out / "keyframes.partial.tum").read_text().splitlines()) > 1
     assert (out / "checkpoint.partial.pt").exists()     # the new run's map, as of a keyframe
+    # a Ctrl-C (or disk full) while the final files are written: still nothing of the first run
+    # replaced (they are staged, then renamed in place), and this run's trajectory so far is kept
+    (out / "trajectory.partial.tum").unlink()
+    from vings_core.mapping import Mapper
+    real = Mapper.save_checkpoint
+
+    def interrupted(self, path):
+        if Path(path).name == "checkpoint.pt":
+            raise KeyboardInterrupt
+        return real(self, path)
+    monkeypatch.setattr(Mapper, "save_checkpoint", interrupted)
+    r = SlamRunner(_room_source(tmp_path, 40), out, _fast_params(tmp_path), cfg, progress=False)
+    with pytest.raises(KeyboardInterrupt):
+        r.run()
+    monkeypatch.undo()
+    for name, data in before.items():
+        assert (out / name).read_bytes() == data, name
+    assert sorted(p.name for p in (out / "renders").iterdir()) == renders
+    assert (out / "trajectory.partial.tum").read_bytes() == before["trajectory.tum"]   # deterministic
+    assert not (out / ".staging").exists()
     SlamRunner(_room_source(tmp_path, 40), out, _fast_params(tmp_path), cfg, progress=False).run()
     names = {p.name for p in out.iterdir()}
     assert not {n for n in names if ".partial." in n}, names
@@ -320,9 +341,49 @@ def test_user_error_in_the_mapper_thread_is_one_line(tmp_path, caplog, monkeypat
     assert not [rec for rec in caplog.records if rec.levelname == "ERROR"]
 
 
+@pytest.mark.parametrize("sync", [True, False])
+def test_a_bug_in_the_mapper_is_one_line_in_both_modes(tmp_path, caplog, monkeypatch, sync):
+    """A non-VingsError in the mapper (a bug) is logged with its traceback and reaches the caller as
+    one VingsError line, the same with --sync as with the mapper thread."""
+    from vings_core.errors import VingsError
+    from vings_core.pipeline import RunConfig, SlamRunner
+    r = SlamRunner(_room_source(tmp_path), tmp_path / "o", _fast_params(tmp_path),
+                   RunConfig(sync=sync), progress=False)
+
+    def boom(*a, **k):
+        raise RuntimeError("boom (test)")
+    monkeypatch.setattr(r.mapper, "train", boom)
+    with caplog.at_level("WARNING", logger="vings.run"):
+        with pytest.raises(VingsError, match=r"mapper failed: RuntimeError: boom \(test\)"):
+            r.run()
+    errors = [rec for rec in caplog.records if rec.levelname == "ERROR"]
+    assert len(errors) == 1 and errors[0].exc_info is not None        # the traceback, once
+    assert not [rec for rec in caplog.records if "had stopped too" in rec.message]
+    assert (tmp_path / "o" / "trajectory.partial.tum").exists()
+
+
+def test_the_mapper_queue_is_bounded(tmp_path, monkeypatch):
+    """Without --sync, tracking waits once max_mapper_lag keyframes are queued for the mapper."""
+    import time as _time
+    from vings_core.mapping import Mapper
+    from vings_core.pipeline import RunConfig, SlamRunner
+    r = SlamRunner(_room_source(tmp_path, 40), tmp_path / "o", _fast_params(tmp_path),
+                   RunConfig(sync=False, max_mapper_lag=2, eval_keyframes=1, eval_novel=1), progress=False)
+    seen = []
+    real = Mapper.add_keyframe
+
+    def slow(self, kf):
+        seen.append(r._queue.qsize())
+        _time.sleep(0.3)
+        return real(self, kf)
+    monkeypatch.setattr(Mapper, "add_keyframe", slow)
+    m = r.run()
+    assert m["keyframes"] >= 4 and max(seen) <= 2, seen
+
+
 @pytest.mark.parametrize("field,value", [("gt_kf_max_gap", 0), ("gt_kf_trans_m", -0.1),
                                          ("gt_kf_rot_deg", float("nan")), ("gt_inv_depth_var", -5.0),
-                                         ("checkpoint_every", -3)])
+                                         ("checkpoint_every", -3), ("max_mapper_lag", -1)])
 def test_run_config_refuses_nonsense(field, value):
     from vings_core.pipeline import RunConfig
     with pytest.raises(ValueError, match=field):

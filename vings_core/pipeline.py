@@ -55,6 +55,9 @@ class RunConfig:
     ``eval_keyframes``/``eval_novel``: at most this many keyframes / non-keyframe frames are rendered
     for PSNR (evenly spaced). ``save_renders``: keyframe renders saved under renders/.
     ``checkpoint_every``: keyframes between map checkpoints (0 = only at the end).
+    ``max_mapper_lag``: without ``sync``, keyframes that may wait for the mapper thread; tracking
+    waits when that many are queued, so memory stays bounded and the mapper's refinements reach
+    the front end during the run (0 = no bound).
     ``pose_writeback``: what the front end does with the mapper's pose refinements (see
     :class:`FrontendPoseLink`): ``none`` (never applied; the mapper is told to undo them),
     ``all`` (every correction applied), ``consistent`` (applied only when the front end's own
@@ -76,6 +79,7 @@ class RunConfig:
     eval_novel: int = 40
     save_renders: int = 6
     checkpoint_every: int = 20
+    max_mapper_lag: int = 8
     pose_writeback: str = "consistent"
     writeback_confidence: float = 0.99
 
@@ -90,6 +94,8 @@ class RunConfig:
             raise ValueError("eval_keyframes, eval_novel and save_renders must be >= 0")
         if self.gt_kf_max_gap < 1:
             raise ValueError(f"gt_kf_max_gap must be >= 1 frame, got {self.gt_kf_max_gap}")
+        if self.max_mapper_lag < 0:
+            raise ValueError(f"max_mapper_lag must be >= 0, got {self.max_mapper_lag}")
         for name in ("gt_kf_trans_m", "gt_kf_rot_deg", "gt_inv_depth_var"):
             v = getattr(self, name)
             if not (math.isfinite(v) and v >= 0):
@@ -502,6 +508,10 @@ class SlamRunner:
         self._pending_corrections: list[dict[int, np.ndarray]] = []
         self._lock = threading.Lock()
         self._queue: "queue.Queue[Optional[tuple[str, object]]]" = queue.Queue()
+        # slots of the bounded mapper queue (mapper thread only, see max_mapper_lag)
+        self._kf_queued = (threading.Semaphore(self.cfg.max_mapper_lag)
+                           if self.cfg.max_mapper_lag and not self.cfg.sync else None)
+        self._lag_warned = False
         self.fe_link = FrontendPoseLink(self.cfg)     # pose exchange, as between the nodes
         self.map_link = MapperPoseLink()
         self.out.prepare()      # after the configuration is known to be valid, before any work
@@ -522,7 +532,11 @@ class SlamRunner:
 
     def _handle(self, kind: str, item: object) -> None:
         if kind == "kf":
-            self._map_keyframe(item)
+            try:
+                self._map_keyframe(item)
+            finally:
+                if self._kf_queued is not None:
+                    self._kf_queued.release()
         else:  # "poses": front-end BA moved keyframes the mapper already holds
             self.map_link.apply_frontend_poses(self.mapper, item)
 
@@ -584,9 +598,31 @@ class SlamRunner:
 
     def _dispatch(self, kind: str, item: object, worker: Optional[threading.Thread]) -> None:
         if worker is None:
-            self._handle(kind, item)
-        else:
-            self._queue.put((kind, item))
+            try:
+                self._handle(kind, item)
+            except VingsError:
+                raise
+            except Exception as e:  # a bug: traceback logged, one line for the user (as the thread's)
+                log.exception("mapper failed")
+                raise VingsError(f"mapper failed: {type(e).__name__}: {e}") from e
+            return
+        if kind == "kf" and self._kf_queued is not None:
+            self._wait_for_mapper()
+        self._queue.put((kind, item))
+
+    def _wait_for_mapper(self) -> None:
+        """Take a keyframe slot of the bounded mapper queue (``max_mapper_lag``); waits while the
+        mapper thread works, and stops waiting when it failed."""
+        if self._kf_queued.acquire(blocking=False):
+            return
+        if not self._lag_warned:
+            self._lag_warned = True
+            log.info("tracking waits for the mapper (%d keyframes queued, run.max_mapper_lag)",
+                     self.cfg.max_mapper_lag)
+        while not self._kf_queued.acquire(timeout=0.2):
+            if self._mapper_done.is_set():
+                self._raise_mapper_error()
+                return
 
     def _take_corrections(self) -> None:
         """Mapper refinements -> front end (through the write-back policy), before a frame."""
@@ -672,7 +708,7 @@ class SlamRunner:
             self._abort = True      # Ctrl-C or an input error: do not map the queued keyframes first
             bar.close()
             self._stop_worker_after_failure(worker)
-            if self._mapper_err is not None and self._mapper_err is not e:
+            if self._mapper_err is not None and self._mapper_err not in (e, e.__cause__):
                 log.warning("the mapper had stopped too: %s", self._mapper_err)
             self._save_partial()
             raise
@@ -746,14 +782,24 @@ class SlamRunner:
         return {"traj": traj, "kf_traj": kf_traj, "metrics": m, "renders": renders}
 
     def _write_final(self, final: dict, t0: float) -> dict:
-        """Replace the previous run's files by this run's (a few seconds), ``metrics.json`` last."""
-        self.out.begin_final()
-        self.out.write_trajectory(final["traj"])
-        self.out.write_keyframes(final["kf_traj"])
-        self.mapper.save_ply(self.out.map_path)
-        self.mapper.save_checkpoint(self.out.checkpoint_path)
-        for name, rgb in final["renders"].items():
-            self.out.save_render(name, rgb)
+        """Replace the previous run's files by this run's, ``metrics.json`` last. Everything is
+        first written to a staging folder (the slow part: a failure or Ctrl-C there leaves the
+        previous run's outputs as they were, and this run's partial trajectory), then moved in
+        place by renames."""
+        out = self.out
+        try:
+            out.write_trajectory(final["traj"], staged=True)
+            out.write_keyframes(final["kf_traj"], staged=True)
+            self.mapper.save_ply(out.staging_path(out.map_path))
+            self.mapper.save_checkpoint(out.staging_path(out.checkpoint_path))
+            for name, rgb in final["renders"].items():
+                out.save_render(name, rgb, staged=True)
+        except BaseException:
+            out.discard_staged()
+            self._save_partial()
+            raise
+        out.begin_final()
+        out.commit_staged()
         m = final["metrics"]
         m["peak_rss_mb"] = peak_rss_mb()
         wall = time.perf_counter() - t0     # reading to the last output before metrics.json

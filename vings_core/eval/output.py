@@ -17,6 +17,7 @@ import math
 import os
 import re
 import resource
+import shutil
 import sys
 from pathlib import Path
 from typing import Any, Union
@@ -39,6 +40,7 @@ CHECKPOINT_PARTIAL_FILE = "checkpoint.partial.pt"
 TRAJECTORY_PARTIAL_FILE = "trajectory.partial.tum"
 KEYFRAMES_PARTIAL_FILE = "keyframes.partial.tum"
 RUN_RENDER_PREFIX = "kf_"       # the runner's renders: renders/kf_<stamp>.png
+STAGING_DIR = ".staging"        # a run's final files before they replace the previous run's
 
 #: metrics.json keys, in file order. Units: wall_s s, fps frames/s, ate_* m, psnr_* dB,
 #: peak_rss_mb MiB; rpe is the dict of vings_core.eval.traj.rpe (or null).
@@ -168,6 +170,7 @@ class RunOutput:
         for p in (self.checkpoint_path, self.trajectory_path, self.keyframes_path, self.map_path,
                   self.metrics_path) + self._partial_paths():
             remove_stale_temps(p)
+        self.discard_staged()       # a run killed while writing its final files
 
     def _partial_paths(self) -> tuple[Path, ...]:
         return (self.partial_checkpoint_path, self.out_dir / TRAJECTORY_PARTIAL_FILE,
@@ -188,6 +191,32 @@ class RunOutput:
         except OSError as e:
             raise InputError(f"{self.out_dir}: cannot replace a previous run's outputs "
                              f"({e.strerror or e})") from None
+
+    def staging_path(self, final: Path) -> Path:
+        """Where the end of a run writes the file ``final`` (a path in the output folder) before
+        :meth:`commit_staged` moves it in place."""
+        return self.out_dir / STAGING_DIR / Path(final).relative_to(self.out_dir)
+
+    def commit_staged(self) -> list[Path]:
+        """Move every staged file onto its final name (one rename each: the whole set lands in
+        milliseconds, after the slow writes). Returns the final paths."""
+        root = self.out_dir / STAGING_DIR
+        done = []
+        try:
+            for p in sorted(q for q in root.rglob("*") if q.is_file()):
+                dest = self.out_dir / p.relative_to(root)
+                dest.parent.mkdir(parents=True, exist_ok=True)
+                os.replace(p, dest)
+                done.append(dest)
+        except OSError as e:
+            raise InputError(f"{self.out_dir}: cannot move the final outputs in place "
+                             f"({e.strerror or e})") from None
+        self.discard_staged()
+        return done
+
+    def discard_staged(self) -> None:
+        """Remove the staging folder (files of a run that did not reach its end)."""
+        shutil.rmtree(self.out_dir / STAGING_DIR, ignore_errors=True)
 
     def remove_partials(self) -> None:
         """After a run's final files: the partial files of this (or an interrupted) run go."""
@@ -235,15 +264,18 @@ class RunOutput:
     def renders_dir(self) -> Path:
         return self.out_dir / RENDERS_DIR
 
-    def write_trajectory(self, traj: Trajectory) -> Path:
-        """Every frame after initialisation, cam0 ``T_wc`` -> ``trajectory.tum``."""
-        write_tum(self.trajectory_path, traj)
-        return self.trajectory_path
+    def write_trajectory(self, traj: Trajectory, staged: bool = False) -> Path:
+        """Every frame after initialisation, cam0 ``T_wc`` -> ``trajectory.tum`` (``staged``: to
+        its :meth:`staging_path`)."""
+        path = self.staging_path(self.trajectory_path) if staged else self.trajectory_path
+        write_tum(path, traj)
+        return path
 
-    def write_keyframes(self, traj: Trajectory) -> Path:
+    def write_keyframes(self, traj: Trajectory, staged: bool = False) -> Path:
         """Keyframe poses (stamp = keyframe identity), cam0 ``T_wc`` -> ``keyframes.tum``."""
-        write_tum(self.keyframes_path, traj)
-        return self.keyframes_path
+        path = self.staging_path(self.keyframes_path) if staged else self.keyframes_path
+        write_tum(path, traj)
+        return path
 
     def write_metrics(self, metrics: dict) -> dict:
         """Validate (:func:`validate_metrics`) and write ``metrics.json``; returns what was written."""
@@ -277,7 +309,7 @@ class RunOutput:
         m.update(partial)
         return self.write_metrics(m)
 
-    def save_render(self, name: str, rgb: Any) -> Path:
+    def save_render(self, name: str, rgb: Any, staged: bool = False) -> Path:
         """Write ``renders/<name>.png`` from ``(H, W, 3)``/``(H, W)`` uint8 or float [0, 1]
         (numpy or torch) RGB. ``name`` is a plain file name (``[A-Za-z0-9._-]``)."""
         import cv2
@@ -292,5 +324,7 @@ class RunOutput:
         if not ok:
             raise InputError(f"render {name!r}: PNG encoding failed")
         path = self.renders_dir / f"{stem}.png"
+        if staged:
+            path = self.staging_path(path)
         atomic_write_bytes(path, buf.tobytes())
         return path
