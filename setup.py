@@ -19,6 +19,8 @@ setup(
     ],
     python_requires=">=3.11,<3.12",
     install_requires=[],  # pinned set in requirements.txt (see README); ROS deps come from package.xml
+    # optional CUDA route of the renderer (a CUDA torch build is needed too; JIT-compiles on first use)
+    extras_require={"cuda": ["gsplat==1.5.3"]},
     zip_safe=False,
     maintainer="VINGS-ROS developers",
     maintainer_email="vings-ros@example.org",

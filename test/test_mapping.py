@@ -11,7 +11,7 @@ import torch
 
 from vings_core.config import load_section
 from vings_core.errors import ConfigError, InputError
-from vings_core.geometry import np_pose, np_se3_exp, quat_to_rotmat, rotation_angle_deg
+from vings_core.geometry import np_pose, np_rotmat_to_quat, np_se3_exp, quat_to_rotmat, rotation_angle_deg
 from vings_core.mapping import GaussianMap, Mapper, MapperConfig, read_ply
 from vings_core.mapping import scores as S
 from vings_core.mapping.init import (depth_normals, empty_mask, fill_depth, frame_from_normals,
@@ -131,7 +131,7 @@ def test_score_manager_in_mapper_freezes_and_prunes(room_small):
     assert c["pruned"] > 0
     assert c["to_stable"] > 0                     # Gaussians no longer seen by the window froze
     # frozen Gaussians keep their ID(g) among the added keyframes
-    assert set(torch.unique(m.gm.kf_id).tolist()) <= {f.stamp_ns for f in frames}
+    assert set(torch.unique(m.gm.kf_id).tolist()) <= {frames[i].stamp_ns for i in (0, 1, 6, 7)}
     assert m.gm.stable.any()
 
 
@@ -894,6 +894,41 @@ def test_mapping_fits_keyframes_and_deletes_floaters(room_small):
     r = m.render(kf.T_wc.numpy(), cam)
     assert r["color"].shape == (cam.height, cam.width, 3) and r["depth"].dtype == np.float32
     assert np.isfinite(r["depth"]).all() and (r["alpha"] <= 1.0 + 1e-6).all()
+
+
+def test_new_keyframe_deletes_wrong_coloured_and_oversized_splats(room_small):
+    """Deletion rules (b) and (c): a splat on the observed surface whose colour stays wrong over a
+    3x3 neighbourhood, and a seen splat whose projected radius exceeds the diagonal fraction, are
+    removed when a keyframe sees them (and counted under their rule); the trained map around them
+    is not."""
+    cam, frames = room_small
+    m = Mapper(MapperConfig(points_per_keyframe=2500, iters_per_keyframe=30, sample_ratio=1.0))
+    m.add_keyframe(frames[0])
+    m.train()
+    kf = frames[1]
+    T = kf.T_wc.numpy()
+
+    def on_ray(u, v, scale):        # world point at pixel (u, v), depth scale x observed depth
+        d = float(kf.depth[v, u]) * scale
+        return T[:3, :3] @ np.array([(u - cam.cx) / cam.fx * d, (v - cam.cy) / cam.fy * d, d]) + T[:3, 3]
+
+    q_cam = torch.tensor([[*np_rotmat_to_quat(T[:3, :3])]], dtype=torch.float32)   # facing the camera
+    # (b) on the surface (5 % in front of it, inside the 15 % band), magenta, opaque, ~5 px wide
+    d_w = float(kf.depth[20, 32])
+    wrong = GaussianMap.create(torch.tensor(on_ray(32, 20, 0.95)[None], dtype=torch.float32), q_cam,
+                               torch.full((1, 2), math.log(2.5 * d_w / cam.fx)), torch.tensor([6.0]),
+                               torch.tensor([[[2.0, -1.5, 2.0]]]), kf_id=frames[0].stamp_ns)
+    # (c) a splat covering most of the view (radius far above 0.15 x diagonal), faint
+    big = GaussianMap.create(torch.tensor(on_ray(12, 30, 0.9)[None], dtype=torch.float32), q_cam,
+                             torch.full((1, 2), math.log(0.5 * d_w)), torch.tensor([-3.0]),
+                             torch.zeros((1, 1, 3)), kf_id=frames[0].stamp_ns)
+    m.gm = GaussianMap.concat([m.gm, wrong, big])
+    info = m.add_keyframe(kf)
+    rules = info["delete_rules"]
+    assert rules["wrong_colour"] >= 1 and rules["too_big"] >= 1, rules
+    for g in (wrong, big):
+        assert not torch.isclose(m.gm.means, g.means).all(1).any()
+    assert info["deleted"] < 0.05 * (len(m.gm) + info["deleted"] - info["added"])   # not the map
 
 
 def test_unknown_depth_is_seeded_and_not_forced_empty(room_small):

@@ -239,15 +239,27 @@ def test_sample_selection_ranks_nan_scores_last():
 
 
 def test_sample_map_set_after_forward_overrides_loss_map():
+    """The map set after the forward decides which pixels back-propagate, over the forward's
+    loss_map: the gradients equal the full backward with the upstream masked by its selection
+    (the loss map would select other pixels: the right half)."""
     g = _scene(150, seed=17)
-    leaves = [t.clone().requires_grad_(True) for t in g]
-    out = rasterize_2dgs(*leaves, T_CW, CAM, sample_ratio=0.25)
     score = torch.zeros(CAM.height, CAM.width, dtype=F64)
     score[:, :20] = 1.0                         # prefer the left columns
+    loss = torch.zeros(CAM.height, CAM.width, dtype=F64)
+    loss[:, CAM.width // 2:] = 1.0              # the forward's loss map prefers the right half
+    up = _upstream(seed=2)
+    leaves = [t.clone().requires_grad_(True) for t in g]
+    bg = torch.tensor(BG, dtype=F64, requires_grad=True)
+    pd = torch.zeros(6, dtype=F64, requires_grad=True)
+    out = rasterize_2dgs(*leaves, T_CW, CAM, background=bg, pose_delta=pd, sample_ratio=0.25, loss_map=loss)
     out.set_sample_map(score)
-    out.color.sum().backward()
+    sum((getattr(out, k) * u).sum() for k, u in zip(OUT_KEYS, up)).backward()
     sel = select_sample_pixels(score, 0.25)
     assert out.stats["bwd_pixels"] == int(sel.sum())
+    assert not torch.equal(sel, select_sample_pixels(loss, 0.25))
+    masked = [u * (sel[..., None] if u.dim() == 3 else sel).to(F64) for u in up]
+    gr, _ = _grads(rasterize_2dgs, g, masked)
+    _assert_grads_close([t.grad for t in leaves] + [bg.grad, pd.grad], gr, rtol=1e-9)
     with pytest.raises(InputError):
         out.set_sample_map(torch.zeros(3, 3))
 
@@ -463,9 +475,9 @@ def test_in_place_change_before_backward_is_refused():
     g = [t.detach().clone().requires_grad_(True) for t in _scene(30)]
     score = torch.rand(CAM.height, CAM.width, generator=torch.Generator().manual_seed(3), dtype=F64)
     grads = []
-    for mutate in (False, True):
+    for mutate in (False, True, None):      # None: the negated map itself, set before the backward
         out = _fast(g, sample_ratio=0.5)
-        s = score.clone()
+        s = score.clone() if mutate is not None else -score
         out.set_sample_map(s)
         if mutate:
             s.neg_()
@@ -473,8 +485,10 @@ def test_in_place_change_before_backward_is_refused():
             t.grad = None
         out.color.sum().backward()
         grads.append([t.grad.clone() for t in g])
-    for a, b in zip(*grads):
+    for a, b in zip(grads[0], grads[1]):
         assert torch.equal(a, b)
+    # and the negated map does select other pixels (so the equality above is not vacuous)
+    assert not torch.equal(grads[0][0], grads[2][0])
 
 
 def test_tiny_sample_ratio_selects_no_pixel():
@@ -785,3 +799,26 @@ def test_backward_scratch_reuse_keeps_earlier_gradients():
     sum((getattr(r2, k) * u).sum() for k, u in zip(OUT_KEYS, up_b)).backward()
     for t, f, r in zip(leaves, first, ref):
         assert torch.allclose(t.grad, f + r.grad, rtol=1e-10, atol=1e-12)
+
+
+def test_clipping_planes_and_the_opacity_cut():
+    """Centres beyond ``far`` (or before ``near``) and splats with opacity below 1/255 are culled
+    (radius 0, nothing rendered); ``near >= far`` is refused."""
+    one = [torch.tensor([[0.0, 0.0, 3.0]], dtype=F64), torch.tensor([[0.0, 0.0, 0.0, 1.0]], dtype=F64),
+           torch.tensor([[0.3, 0.3]], dtype=F64), torch.tensor([0.9], dtype=F64),
+           torch.tensor([[0.8, 0.2, 0.1]], dtype=F64)]
+    eye = np.eye(4)
+    seen = rasterize_2dgs(*one, eye, CAM)
+    assert int(seen.radii[0]) > 0 and float(seen.alpha.max()) > 0.5
+    for kw in ({"far": 2.5}, {"near": 3.5, "far": 10.0}):
+        out = rasterize_2dgs(*one, eye, CAM, **kw)
+        assert int(out.radii[0]) == 0 and float(out.alpha.max()) == 0.0, kw
+    faint = list(one)
+    faint[3] = torch.tensor([1.0 / 300.0], dtype=F64)
+    out = rasterize_2dgs(*faint, eye, CAM)
+    assert int(out.radii[0]) == 0 and float(out.alpha.max()) == 0.0
+    faint[3] = torch.tensor([1.0 / 200.0], dtype=F64)       # above the cut: rendered
+    assert float(rasterize_2dgs(*faint, eye, CAM).alpha.max()) > 0
+    for near, far in ((1.0, 1.0), (2.0, 1.0)):
+        with pytest.raises(InputError, match="near"):
+            rasterize_2dgs(*one, eye, CAM, near=near, far=far)
