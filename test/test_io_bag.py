@@ -85,7 +85,15 @@ def test_topic_detection_and_choice(tmp_path):
         open_source(p)
     with pytest.raises(InputError, match=r"several IMU topics: /imu/a, /imu/b"):
         open_source(p, SourceOptions(image_topic="/right/image_raw"))
-    src = open_source(p, SourceOptions(image_topic="/right/image_raw", imu_topic="/imu/b"))
+    # the only CameraInfo is the left camera's: never taken for the right images
+    with pytest.raises(InputError, match=r"no calibration for image topic /right/image_raw: no usable "
+                                         r"CameraInfo topic \(the camera-info topic\(s\) /left/camera_info are "
+                                         r"not in the namespace /right"):
+        open_source(p, SourceOptions(image_topic="/right/image_raw", imu_topic="/imu/b"))
+    src = open_source(p, SourceOptions(image_topic="/left/image_raw", imu_topic="/imu/b"))
+    assert src.camera_info_topic == "/left/camera_info"
+    src = open_source(p, SourceOptions(image_topic="/right/image_raw", imu_topic="/imu/b",
+                                       camera_info_topic="/left/camera_info"))     # the user's choice
     assert (src.image_topic, src.imu_topic, src.camera_info_topic) == ("/right/image_raw", "/imu/b",
                                                                       "/left/camera_info")
     with pytest.raises(InputError, match=r"image topic '/nope' not found; topics in the bag: .*/imu/a"):

@@ -272,3 +272,32 @@ def test_detect_format_errors(tmp_path):
     (tmp_path / "d").mkdir()
     with pytest.raises(InputError, match="not a recognised recording"):
         open_source(tmp_path / "d")
+
+
+def test_kitti_pairs_times_and_poses_by_frame_number(tmp_path):
+    """times.txt and poses.txt have one line per frame number: a subset of the images (frames
+    5..9) or a missing image keeps each image's own time and pose; a subset whose files were cut
+    to it (one line per image) is paired by position, warned."""
+    root = make_kitti(tmp_path / "k", n=10)
+    for i in range(5):
+        (root / "image_0" / f"{i:06d}.png").unlink()
+    (root / "image_0" / "000007.png").unlink()
+    src = open_source(root)
+    assert src.frame_stamps().tolist() == [500_000_000, 600_000_000, 800_000_000, 900_000_000]
+    gt = src.ground_truth
+    assert gt.stamps_ns.tolist() == src.frame_stamps().tolist()
+    assert gt.poses[:, 2, 3].tolist() == [5.0, 6.0, 8.0, 9.0]          # pose line = frame number
+    # the times and poses files cut to the subset (one line per image): by position, warned
+    lines = (root / "times.txt").read_text().splitlines()
+    (root / "times.txt").write_text("\n".join(lines[5:7] + lines[8:]) + "\n")
+    rows = (root / "poses.txt").read_text().splitlines()
+    (root / "poses.txt").write_text("\n".join(rows[5:7] + rows[8:]) + "\n")
+    src = open_source(root)
+    assert src.frame_stamps().tolist() == [500_000_000, 600_000_000, 800_000_000, 900_000_000]
+    assert src.ground_truth.poses[:, 2, 3].tolist() == [5.0, 6.0, 8.0, 9.0]
+    assert any("paired by position" in w for w in src.warnings)
+    # too few times for the numbers: the images without a time are left out, warned
+    (root / "times.txt").write_text("\n".join(lines[:9]) + "\n")
+    src = open_source(root)
+    assert src.frame_stamps().tolist() == [500_000_000, 600_000_000, 800_000_000]
+    assert any("numbered 9 and above have none" in w for w in src.warnings)

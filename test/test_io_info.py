@@ -40,7 +40,11 @@ def test_info_errors_are_one_line(tmp_path, capsys):
     assert "several image topics: /a, /b" in capsys.readouterr().err
     assert main(["info", str(p), "--image-topic", "/b", "--calib", str(tmp_path / "none.yaml")]) == 2
     assert "none.yaml: calibration file not found" in capsys.readouterr().err
-    assert _info_json(capsys, str(p), "--image-topic", "/b")["topics_used"]["image"] == "/b"
+    # the bag's only CameraInfo (/cam0/camera_info) is not /b's camera: named explicitly it is used
+    assert main(["info", str(p), "--image-topic", "/b"]) == 2
+    assert "not in the namespace / of the image topic" in capsys.readouterr().err
+    used = _info_json(capsys, str(p), "--image-topic", "/b", "--camera-info-topic", "/cam0/camera_info")
+    assert used["topics_used"]["image"] == "/b"
 
 
 def test_info_on_simulator_output(tmp_path, capsys):

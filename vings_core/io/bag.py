@@ -31,7 +31,7 @@ from ..geometry import np_project_rotation, np_quat_to_rotmat, rotation_angle_de
 from ..trajectory_io import sec_nsec_to_ns
 from ..types import CameraModel, Frame
 from .base import SourceOptions
-from .calib_yaml import (CalibParts, camera_info_intrinsics, distortion_model_name, is_rectified_topic,
+from .calib_yaml import (CalibParts, camera_info_intrinsics, distortion_model_name, is_rectified_topic, topic_namespace,
                          make_camera, read_calibration_parts, rectified_camera_matrix)
 from .common import LoaderSource, check_size, late_entries, order_stamps
 from .image_codec import decode_compressed, decode_image
@@ -148,6 +148,7 @@ class BagSource(LoaderSource):
                                 for n, i in r.topics.items()}
             self.image_topic = self._pick("image", o.image_topic, IMAGE_TYPES)
             self.imu_topic = self._pick("IMU", o.imu_topic, (IMU,))
+            self._camera_info_note = ""
             self.camera_info_topic = self._pick_camera_info(o.camera_info_topic)
             self.gt_topic = self._pick("ground-truth", o.gt_topic, GT_TYPES) if o.gt_topic else None
             if not o.gt_topic and DEFAULT_GT_TOPIC in self.topic_table:
@@ -218,25 +219,31 @@ class BagSource(LoaderSource):
         return full[0] if full else None
 
     def _pick_camera_info(self, requested: Optional[str]) -> Optional[str]:
+        """The CameraInfo topic of the image topic's camera: the one in its namespace
+        (``/cam0/image_raw`` -> ``/cam0/camera_info``). Another camera's calibration is never taken
+        silently: with CameraInfo topics only in other namespaces there is none (and, without a
+        calibration YAML, the error says why)."""
         if requested:
             return self._pick("camera-info", requested, (CAMERA_INFO,))
         cands = [t for t in self._topics_of((CAMERA_INFO,)) if self.topic_table[t]["count"] > 0]
-        if len(cands) <= 1:
-            return cands[0] if cands else None
-        if self.image_topic:
-            def common(a: str, b: str) -> int:
-                pa, pb = a.strip("/").split("/"), b.strip("/").split("/")
-                n = 0
-                while n < min(len(pa), len(pb)) and pa[n] == pb[n]:
-                    n += 1
-                return n
-            score = {t: common(t, self.image_topic) for t in cands}
-            best = max(score.values())
-            top = [t for t in cands if score[t] == best]
-            if len(top) == 1 and best > 0:
-                return top[0]
-        raise InputError(f"{self.path}: several camera-info topics: {', '.join(cands)}; choose one "
-                         f"with --camera-info-topic")
+        if not self.image_topic:
+            return cands[0] if len(cands) == 1 else None
+        ns = topic_namespace(self.image_topic)
+        mine = [t for t in cands if topic_namespace(t) == ns]
+        if len(mine) == 1:
+            return mine[0]
+        if not cands:
+            return None
+        images = [t for t in self._topics_of(IMAGE_TYPES) if self.topic_table[t]["count"] > 0]
+        if len(cands) == 1 and images == [self.image_topic]:
+            # one camera in the bag, its CameraInfo named differently: no other camera to mix up
+            self._warn(f"{self.path}: using {cands[0]} for the image topic {self.image_topic} (the only "
+                       f"camera-info and image topics, in different namespaces)")
+            return cands[0]
+        # not an error yet: a calibration YAML may give the camera (else reported with this note)
+        self._camera_info_note = (f"the camera-info topic(s) {', '.join(cands)} are not in the namespace "
+                                  f"{ns} of the image topic (another camera's?)")
+        return None
 
     # -- first pass ------------------------------------------------------------------------------
     def _first_pass(self, r) -> None:
@@ -363,7 +370,8 @@ class BagSource(LoaderSource):
             if camera is None:
                 raise InputError(
                     f"{self.path}: no calibration for image topic {self.image_topic}: no usable "
-                    f"CameraInfo topic and no calibration YAML (looked for "
+                    f"CameraInfo topic{' (' + self._camera_info_note + ')' if self._camera_info_note else ''} "
+                    f"and no calibration YAML (looked for "
                     f"{self.path.parent / ((self.path.name if self.path.is_dir() else self.path.stem) + '.calib.yaml')}); "
                     f"pass --calib FILE or --camera-info-topic")
             camera = check_size(camera, w, h, f"{self.path}:{self.image_topic}", self._warn)

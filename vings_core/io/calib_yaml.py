@@ -128,6 +128,15 @@ def camera_info_intrinsics(K: Any, width: int, height: int, roi: tuple, binning:
 TRANSPORT_SUFFIXES = ("compressed", "compressedDepth", "theora", "zstd", "ffmpeg", "h264")
 
 
+def topic_namespace(topic: str) -> str:
+    """The camera namespace of an image or CameraInfo topic: the topic without its transport
+    suffix and last name (``/stereo/left/image_raw/compressed`` -> ``/stereo/left``)."""
+    parts = [p for p in str(topic).split("/") if p]
+    while parts and parts[-1] in TRANSPORT_SUFFIXES:
+        parts.pop()
+    return "/" + "/".join(parts[:-1])
+
+
 def is_rectified_topic(topic: Optional[str]) -> bool:
     """ROS naming: ``image_rect`` / ``image_rect_color`` / ``image_rect_raw`` (image_proc, RealSense)
     carry rectified images, also behind a transport suffix (``.../image_rect/compressed``)."""

@@ -121,22 +121,31 @@ class KittiSource(FileFramesSource):
         if not files:
             raise InputError(f"{img_dir}: no images")
 
+        # KITTI names frames by their number (000123.png): times.txt and the poses file have one line
+        # per frame number, so a subset of the images (or a gap) is paired by number, not position
+        numbers = [int(p.stem) if p.stem.isdigit() else None for p in files]
+        by_number = all(n is not None for n in numbers)
+        if by_number:       # 2.png before 10.png when the names are not zero-padded
+            files, numbers = zip(*sorted(zip(files, numbers), key=lambda fn: fn[1]))
+            files, numbers = list(files), list(numbers)
+        idx = np.array(numbers if by_number else range(len(files)), dtype=np.int64)
         times = self.path / "times.txt"
         if times.is_file():
             from .common import read_table
             st, _, _ = read_table(times, 1, "frame times (times.txt)", stamp_in_seconds=True)
-            if len(st) < len(files):
-                if len(st) == 0:
-                    raise InputError(f"{times}: no time stamps")
-                self._warn(f"{times}: {len(st)} times for {len(files)} images; using the first "
-                           f"{len(st)} images")
-                files = files[: len(st)]
-            elif len(st) > len(files):
-                self._warn(f"{times}: {len(st)} times for {len(files)} images; extra times ignored")
-                st = st[: len(files)]
+            if len(st) == 0:
+                raise InputError(f"{times}: no time stamps")
+            idx = self._line_index(idx, len(st), len(files), times, "times")
+            keep = idx < len(st)
+            if not keep.all():
+                self._warn(f"{times}: {len(st)} times; the {int((~keep).sum())} image(s) numbered "
+                           f"{int(idx[~keep][0])} and above have none and are left out")
+                files = [f for f, k in zip(files, keep) if k]
+                idx = idx[keep]
+            st = st[idx]
         else:
             self._warn(f"{times} not found: assuming 10 Hz frames from t = 0")
-            st = np.arange(len(files), dtype=np.int64) * 100_000_000
+            st = idx * 100_000_000
         self._set_frames(st, files, str(times))
 
         first = read_image_file(self._files[0] if self._files else files[0])
@@ -163,19 +172,30 @@ class KittiSource(FileFramesSource):
             P_cam = self._lever_arm_camera(cam)
         if pose_file is not None:
             poses = read_kitti_poses(pose_file)
-            all_st = st
-            if len(poses) < len(all_st):
-                self._warn(f"{pose_file}: {len(poses)} poses for {len(all_st)} frames; ground truth "
-                           f"covers the first {len(poses)}")
-            m = min(len(poses), len(all_st))
-            poses = poses[:m]
+            pidx = self._line_index(idx, len(poses), len(files), pose_file, "poses")
+            has = pidx < len(poses)
+            if not has.all():
+                self._warn(f"{pose_file}: {len(poses)} poses; no ground truth for the "
+                           f"{int((~has).sum())} frame(s) numbered {int(pidx[~has][0])} and above")
+            all_st = np.asarray(st)[has]
+            poses = poses[pidx[has]]
             if P_cam is not None and cam != 0:
                 # x_cam = x_cam0 + t with t = K^-1 P[:, 3]: T_cam0_cam = [I | -t]
                 t = np.linalg.solve(P_cam[:, :3], P_cam[:, 3])
                 T0c = np.eye(4)
                 T0c[:3, 3] = -t
                 poses = poses @ T0c
-            self._set_gt(np.asarray(all_st[:m]), poses, str(pose_file), "camera")
+            self._set_gt(all_st, poses, str(pose_file), "camera")
+
+    def _line_index(self, idx: np.ndarray, n_lines: int, n_files: int, path: Path, what: str) -> np.ndarray:
+        """Line of ``path`` (times / poses, one line per frame number) for each image: its frame
+        number; by position when the numbers run past the file but it has one line per image (a
+        subset whose files were cut to it). Warned when the two readings disagree."""
+        if len(idx) and idx.max() >= n_lines and n_lines == n_files:
+            self._warn(f"{path}: {n_lines} {what} for images numbered up to {int(idx.max())}: "
+                       f"paired by position (one line per image)")
+            return np.arange(n_files, dtype=np.int64)
+        return idx
 
     def _lever_arm_camera(self, cam: int) -> Optional[np.ndarray]:
         """P of camera ``cam`` from the sequence's calib.txt when ``--calib`` gave the intrinsics
