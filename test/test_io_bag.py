@@ -355,3 +355,20 @@ def test_imu_without_gyro_is_not_used(tmp_path):
     assert src.imu_samples() == [] and not src.calibration.has_imu
     assert any("/imu0: messages mark gyro as unavailable" in w for w in src.warnings)
     assert len(list(src.frames())) == 4
+
+
+def test_a_linked_bag_finds_the_calibration_beside_its_target(tmp_path):
+    """``room.mcap`` linked from elsewhere still reads ``room.calib.yaml`` beside the real file."""
+    import shutil
+    spec = BagSpec()
+    p = make_bag(tmp_path / "real" / "b", spec, "mcap")
+    cal = p.parent / f"{p.stem}.calib.yaml"
+    cal.write_text("T_bc: [[1, 0, 0, 0.25], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]\n")
+    (tmp_path / "links").mkdir()
+    link = tmp_path / "links" / p.name
+    link.symlink_to(p)
+    src = open_source(link)
+    assert np.isclose(src.calibration.T_bc[0, 3], 0.25)
+    shutil.copy(cal, tmp_path / "links" / cal.name)           # one beside the link wins
+    (tmp_path / "links" / cal.name).write_text("T_bc: [[1, 0, 0, 0.5], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]\n")
+    assert np.isclose(open_source(link).calibration.T_bc[0, 3], 0.5)

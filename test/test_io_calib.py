@@ -48,6 +48,25 @@ def test_kalibr_camchain_with_imu_noise(tmp_path):
     assert (c.gyro_noise_density, c.accel_noise_density, c.imu_rate_hz) == (0.001, 0.02, 400.0)
 
 
+def test_kalibr_stereo_camchain_gives_the_image_topics_camera(tmp_path):
+    from vings_core.io.calib_yaml import read_calibration_parts
+    p = tmp_path / "camchain.yaml"
+    blocks = []
+    for k, (fx, tx) in enumerate(((200.0, 0.0), (210.0, -0.1))):
+        Tci = np.eye(4)
+        Tci[0, 3] = tx
+        blocks.append(f"cam{k}:\n  camera_model: pinhole\n  intrinsics: [{fx}, {fx}, 320.0, 240.0]\n"
+                      f"  distortion_model: radtan\n  distortion_coeffs: [0.0, 0.0, 0.0, 0.0]\n"
+                      f"  resolution: [640, 480]\n  T_cam_imu: {Tci.tolist()}\n  rostopic: /cam{k}/image_raw\n")
+    p.write_text("".join(blocks))
+    assert read_calibration_parts(p).camera.fx == 200.0                  # no topic: cam0
+    right = read_calibration_parts(p, "/cam1/image_raw/compressed")
+    assert right.camera.fx == 210.0 and np.isclose(right.T_bc[0, 3], 0.1)
+    with pytest.raises(InputError, match=r"camchain has 2 cameras \(cam0: /cam0/image_raw, cam1: "
+                                         r"/cam1/image_raw\); none is for the image topic /cam2/image_raw"):
+        read_calibration_parts(p, "/cam2/image_raw")
+
+
 def test_ros_camera_info_yaml(tmp_path):
     p = tmp_path / "ost.yaml"
     p.write_text("image_width: 640\nimage_height: 480\ncamera_name: narrow\ncamera_matrix:\n  rows: 3\n"
@@ -115,3 +134,14 @@ def test_binary_calibration_file_is_an_input_error(tmp_path):
 def test_missing_file(tmp_path):
     with pytest.raises(InputError, match="calibration file not found"):
         load_calibration_yaml(tmp_path / "none.yaml")
+
+
+def test_presets_outside_tum_folders_and_the_remap_size_limit():
+    from vings_core.io.calib_yaml import read_calibration_parts
+    from vings_core.io.undistort import Undistorter
+    from vings_core.types import CameraModel
+    with pytest.raises(InputError, match="tum-fr1: calibration file not found \\(the presets .* apply to TUM"):
+        read_calibration_parts("tum-fr1")
+    cam = CameraModel(33000, 16, 1000.0, 1000.0, 16500.0, 8.0, "radtan", np.array([0.1, 0.0, 0.0, 0.0]))
+    with pytest.raises(InputError, match="33000x16: distorted images of 32767 px"):
+        Undistorter(cam)

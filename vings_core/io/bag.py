@@ -47,12 +47,15 @@ DEFAULT_GT_TOPIC = "/ground_truth/pose"
 
 
 def calib_yaml_beside(path: Path) -> Optional[Path]:
-    """``<stem>.calib.yaml`` beside a bag file/folder, or ``calib.yaml`` inside a bag folder."""
+    """``<stem>.calib.yaml`` beside a bag file/folder, or ``calib.yaml`` inside a bag folder; for a
+    symbolic link, also beside the file it points to."""
     path = Path(path)
-    stem = path.name if path.is_dir() else path.stem
-    cands = [path.parent / f"{stem}.calib.yaml"]
-    if path.is_dir():
-        cands += [path / "calib.yaml", path / f"{stem}.calib.yaml"]
+    cands = []
+    for p in dict.fromkeys((path, path.resolve())):     # the link first, then its target
+        stem = p.name if p.is_dir() else p.stem
+        cands.append(p.parent / f"{stem}.calib.yaml")
+        if p.is_dir():
+            cands += [p / "calib.yaml", p / f"{stem}.calib.yaml"]
     return next((c for c in cands if c.is_file()), None)
 
 
@@ -171,7 +174,8 @@ class BagSource(LoaderSource):
             r = AnyReader([self.path], default_typestore=store)
             r.open()
         except Exception as e:  # noqa: BLE001 - rosbags raises many kinds; report them uniformly
-            raise InputError(f"{self.path}: cannot open {self.format}: {e}") from None
+            first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+            raise InputError(f"{self.path}: cannot open {self.format}: {first}") from None
         try:
             yield r
         finally:
@@ -351,7 +355,7 @@ class BagSource(LoaderSource):
         yaml_path = self.options.calib_file or calib_yaml_beside(self.path)
         self.calib_source = None
         if yaml_path:
-            parts = read_calibration_parts(yaml_path)
+            parts = read_calibration_parts(yaml_path, self.image_topic)
             self.calib_source = str(yaml_path)
         camera = parts.camera
         if camera is None and cam_msg is not None:

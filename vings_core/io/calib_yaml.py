@@ -128,13 +128,18 @@ def camera_info_intrinsics(K: Any, width: int, height: int, roi: tuple, binning:
 TRANSPORT_SUFFIXES = ("compressed", "compressedDepth", "theora", "zstd", "ffmpeg", "h264")
 
 
-def topic_namespace(topic: str) -> str:
-    """The camera namespace of an image or CameraInfo topic: the topic without its transport
-    suffix and last name (``/stereo/left/image_raw/compressed`` -> ``/stereo/left``)."""
+def _topic_names(topic) -> list[str]:
+    """The names of a topic without its image-transport suffixes."""
     parts = [p for p in str(topic).split("/") if p]
     while parts and parts[-1] in TRANSPORT_SUFFIXES:
         parts.pop()
-    return "/" + "/".join(parts[:-1])
+    return parts
+
+
+def topic_namespace(topic: str) -> str:
+    """The camera namespace of an image or CameraInfo topic: the topic without its transport
+    suffix and last name (``/stereo/left/image_raw/compressed`` -> ``/stereo/left``)."""
+    return "/" + "/".join(_topic_names(topic)[:-1])
 
 
 def is_rectified_topic(topic: Optional[str]) -> bool:
@@ -142,9 +147,7 @@ def is_rectified_topic(topic: Optional[str]) -> bool:
     carry rectified images, also behind a transport suffix (``.../image_rect/compressed``)."""
     if not topic:
         return False
-    parts = [p for p in str(topic).split("/") if p]
-    while parts and parts[-1] in TRANSPORT_SUFFIXES:
-        parts.pop()
+    parts = _topic_names(topic)
     return bool(parts) and parts[-1].startswith("image_rect")
 
 
@@ -205,7 +208,9 @@ def read_yaml_doc(path: str | os.PathLike) -> dict:
     """Load a YAML mapping, accepting OpenCV's ``%YAML:1.0`` header and ``!!opencv-matrix`` tags."""
     path = Path(path)
     if not path.is_file():
-        raise InputError(f"{path}: calibration file not found")
+        hint = (f" (the presets {', '.join(PRESETS)} apply to TUM RGB-D folders only)"
+                if str(path).lower() in PRESETS else "")
+        raise InputError(f"{path}: calibration file not found{hint}")
     text = read_utf8_text(path, "calibration file", InputError)
     text = re.sub(r"^%YAML[: ]?1\.\d.*$", "", text, flags=re.M)
     text = text.replace("!!opencv-matrix", "")
@@ -218,8 +223,10 @@ def read_yaml_doc(path: str | os.PathLike) -> dict:
     return doc
 
 
-def parse_calibration(doc: dict, where: str) -> CalibParts:
-    """Interpret a calibration mapping in any of the layouts of the module doc."""
+def parse_calibration(doc: dict, where: str, image_topic: Optional[str] = None) -> CalibParts:
+    """Interpret a calibration mapping in any of the layouts of the module doc. A Kalibr camchain
+    with several cameras gives the one whose ``rostopic`` is ``image_topic`` (cam0 without a
+    topic; an InputError when none matches)."""
     parts = CalibParts()
     flat = dict(doc)
     for sub in ("imu0", "imu"):
@@ -254,10 +261,11 @@ def parse_calibration(doc: dict, where: str) -> CalibParts:
                                    model, c.get("distortion", []), where)
         return parts
     if isinstance(doc.get("cam0"), dict):                         # Kalibr camchain
-        c = doc["cam0"]
+        name = _kalibr_camera(doc, where, image_topic)
+        c = doc[name]
         parts.camera = _camera_from_asl(c, where, coeff_key="distortion_coeffs")
         if "T_cam_imu" in c:
-            T = _rigid(_matrix(c["T_cam_imu"], 4, where, "cam0.T_cam_imu"), where, "cam0.T_cam_imu")
+            T = _rigid(_matrix(c["T_cam_imu"], 4, where, f"{name}.T_cam_imu"), where, f"{name}.T_cam_imu")
             parts.T_bc = np.linalg.inv(T)
         return parts
     if "intrinsics" in doc:                                       # EuRoC/ASL sensor.yaml
@@ -316,9 +324,24 @@ def _camera_from_asl(c: dict, where: str, coeff_key: str) -> CameraModel:
     return make_camera(res[0], res[1], fu, fv, cu, cv, model, c.get(coeff_key, []), where)
 
 
-def read_calibration_parts(path: str | os.PathLike) -> CalibParts:
-    """Whatever a calibration YAML provides (camera may be ``None`` for an IMU-only file)."""
-    return parse_calibration(read_yaml_doc(path), str(path))
+def _kalibr_camera(doc: dict, where: str, image_topic: Optional[str]) -> str:
+    """The ``camN`` block of a Kalibr camchain for ``image_topic`` (see :func:`parse_calibration`)."""
+    cams = sorted((k for k in doc if re.fullmatch(r"cam\d+", str(k)) and isinstance(doc[k], dict)),
+                  key=lambda k: int(k[3:]))
+    if not image_topic or len(cams) == 1:
+        return "cam0"
+    hit = [k for k in cams if _topic_names(doc[k].get("rostopic", "")) == _topic_names(image_topic)]
+    if len(hit) != 1:
+        topics = ", ".join(f"{k}: {doc[k].get('rostopic', '?')}" for k in cams)
+        raise InputError(f"{where}: camchain has {len(cams)} cameras ({topics}); none is for the "
+                         f"image topic {image_topic}")
+    return hit[0]
+
+
+def read_calibration_parts(path: str | os.PathLike, image_topic: Optional[str] = None) -> CalibParts:
+    """Whatever a calibration YAML provides (camera may be ``None`` for an IMU-only file);
+    ``image_topic``: picks the camera of a multi-camera Kalibr camchain."""
+    return parse_calibration(read_yaml_doc(path), str(path), image_topic)
 
 
 def load_calibration_yaml(path: str | os.PathLike) -> Calibration:

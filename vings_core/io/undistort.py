@@ -12,7 +12,7 @@ from typing import Optional
 
 import numpy as np
 
-from ..errors import ConfigError
+from ..errors import ConfigError, InputError
 from ..types import CameraModel
 
 
@@ -78,6 +78,10 @@ def undistorted_camera(raw: CameraModel) -> CameraModel:
     return CameraModel(W, H, hi * raw.fx, hi * raw.fy, raw.cx, raw.cy)
 
 
+#: OpenCV's remap works on images below 32767 px per side (SHRT_MAX)
+REMAP_MAX_SIDE = 32767
+
+
 class Undistorter:
     """Maps stored images (``raw`` camera) to delivered frames (``self.camera``).
 
@@ -94,6 +98,10 @@ class Undistorter:
         self._maps = None
         self._post_resize = False
         if undistort and raw.is_distorted:
+            if max(raw.width, raw.height) >= REMAP_MAX_SIDE:
+                raise InputError(f"camera {raw.width}x{raw.height}: distorted images of {REMAP_MAX_SIDE} px "
+                                 f"or more per side cannot be undistorted (OpenCV remap limit); "
+                                 f"undistort them beforehand")
             rect = undistorted_camera(raw)
             self.camera = rect.scaled(out_w, out_h)
             # For strong down-sampling remap at native size, then area-average.
