@@ -36,6 +36,8 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _harness import run_experiments  # noqa: E402
 from vings_core.frontend import Frontend, FrontendConfig  # noqa: E402
 from vings_core.types import Trajectory  # noqa: E402
 
@@ -167,16 +169,17 @@ def main(argv=None) -> int:
     import yaml
     overrides = {k: yaml.safe_load(v) for k, v in (s.split("=", 1) for s in args.set)}
     cfg = load_section(FrontendConfig, "frontend", args.params, overrides)
-    out = {}
-    for name in args.seqs.split(","):
+    out: dict = {}
+
+    def one(name: str) -> dict:
         t = time.perf_counter()
         r = run_sequence(name, args.workdir, args.frames, cfg)
         r["wall_s"] = round(time.perf_counter() - t, 1)
-        out[name] = r
         print(f"{name}: " + json.dumps({k: (round(v, 4) if isinstance(v, float) else v)
                                          for k, v in r.items()}), flush=True)
-    print(json.dumps(out))
-    return 0
+        return r
+    # a sequence that fails leaves {"error": ...} in its place; the JSON is the last line anyway
+    return run_experiments([(n, lambda n=n: one(n)) for n in args.seqs.split(",")], out)
 
 
 if __name__ == "__main__":

@@ -58,6 +58,9 @@ from vings_core.geometry import np_se3_exp, rotation_angle_deg
 from vings_core.mapping import Mapper, MapperConfig
 from vings_core.types import Keyframe
 
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from _harness import run_experiments  # noqa: E402
+
 FPS = 20.0
 T0_NS = 1_700_000_000_000_000_000
 
@@ -411,6 +414,9 @@ def exp_frontend(a, cfg: MapperConfig) -> dict:
            "wall_s": wall, "map_add_per_kf_s": tm["add_s"] / nk, "map_train_per_kf_s": tm["train_s"] / nk,
            "map_refine_per_kf_s": tm["refine_s"] / nk, "counters": dict(runner.mapper.counters)}
     runner.mapper.close()
+    null = [k for k in ("ate_sim3_m", "psnr_keyframes_db", "psnr_novel_db") if res[k] is None]
+    if null or not res["keyframes"]:
+        res["incomplete"] = f"{res['keyframes']} keyframes, null figures: {', '.join(null) or '-'}"
     log("frontend:", json.dumps(res))
     return res
 
@@ -567,7 +573,10 @@ def exp_storage(a, cfg: MapperConfig) -> dict:
 def exp_timing(a, cfg: MapperConfig, room: dict | None) -> dict:
     if room is not None:
         return {"source": "room run", "iters_per_keyframe": cfg.iters_per_keyframe,
-                "time_per_kf_s": room["time_per_kf_s"], "add_per_kf_s": room["add_per_kf_s"],
+                "time_per_kf_s": room["time_per_kf_s"],
+                # the median is robust to a first keyframe that compiles kernels and to load spikes
+                "time_per_kf_median_s": room["time_per_kf_median_s"], "cpu_per_kf_s": room["cpu_per_kf_s"],
+                "add_per_kf_s": room["add_per_kf_s"],
                 "train_per_kf_s": room["train_per_kf_s"],
                 "train_per_iter_ms": 1000 * room["train_per_kf_s"] / max(1, cfg.iters_per_keyframe),
                 "num_gaussians_final": room["num_gaussians"], "cpu_count": os.cpu_count(),
@@ -669,24 +678,15 @@ def main(argv=None) -> int:
            "pose": lambda: exp_pose(a, cfg), "pose_frontend": lambda: exp_pose_frontend(a, cfg),
            "score_frontend": lambda: exp_score_frontend(a, cfg),
            "storage": lambda: exp_storage(a, cfg), "timing": lambda: exp_timing(a, cfg, room)}
-    failed = []
-    try:
-        # in a fixed order (timing reuses the room run); one failing experiment leaves the others'
-        # figures in the JSON, with its error in its place
-        for e in EXPERIMENTS:
-            if e not in exps:
-                continue
-            try:
-                out[e] = run[e]()
-            except Exception as err:  # noqa: BLE001 - reported in the JSON, exit code 1
-                failed.append(e)
-                out[e] = {"error": f"{type(err).__name__}: {err}"}
-                log(f"{e}: FAILED: {type(err).__name__}: {err}")
-    finally:
-        out["failed"] = failed
-        out["peak_rss_mb"] = process_peak_rss_mb()
-        print(json.dumps(_json_safe(out)), flush=True)
-    return 1 if failed else 0
+    def scoped(fn):          # each experiment's peak RSS is its own, not an earlier one's
+        def go():
+            reset_peak_rss()
+            return fn()
+        return go
+    # in a fixed order (timing reuses the room run); one failing experiment leaves the others'
+    # figures in the JSON, with its error in its place
+    return run_experiments([(e, scoped(run[e])) for e in EXPERIMENTS if e in exps], out, log,
+                           finish=lambda o: o.update(peak_rss_mb=process_peak_rss_mb()), to_json=_json_safe)
 
 
 EXPERIMENTS = ("room", "frontend", "score", "pose", "pose_frontend", "score_frontend", "storage", "timing")

@@ -42,6 +42,9 @@ import torch
 
 from vings_core.geometry import np_pose, np_pose_inverse, np_rotmat_to_quat, np_so3_exp
 
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from _harness import run_experiments  # noqa: E402
+
 SIZES = {"10k": 10_000, "100k": 100_000, "300k": 300_000}
 
 
@@ -224,21 +227,13 @@ def main(argv=None) -> int:
     if args.repeat < 1:
         ap.error("--repeat must be >= 1")
     torch.set_grad_enabled(True)
-    results = {}
-    failed = False
-    try:
-        for name in sizes:
-            try:
-                r = bench_size(name, SIZES[name], args.repeat, with_ref=(name == "10k" and not args.no_ref))
-            except Exception as err:  # noqa: BLE001 - reported in the JSON, exit code 1
-                failed = True
-                r = {"error": f"{type(err).__name__}: {err}"}
-            print(f"{name}: {json.dumps(r)}", file=sys.stderr, flush=True)
-            results[name] = r
-    finally:
-        # one JSON object as the last stdout line, also after a failure or Ctrl-C
-        print(json.dumps(results), flush=True)
-    return 1 if failed else 0
+    results: dict = {}
+
+    def one(name: str) -> dict:
+        r = bench_size(name, SIZES[name], args.repeat, with_ref=(name == "10k" and not args.no_ref))
+        print(f"{name}: {json.dumps(r)}", file=sys.stderr, flush=True)
+        return r
+    return run_experiments([(name, lambda name=name: one(name)) for name in sizes], results)
 
 
 if __name__ == "__main__":

@@ -37,6 +37,10 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 MAPPING = ["mapping.iters_per_keyframe=20", "mapping.refine_iters=3"]
+_PROCS: list = []      # every node process started, stopped at the end whatever happened
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _harness import run_experiments  # noqa: E402
 
 
 class Listener:
@@ -113,8 +117,10 @@ def node_proc(module: str, domain: int, params: list[str], log) -> subprocess.Po
     cmd = [sys.executable, "-m", module, "--ros-args", "--params-file", str(default_params_file())]
     for p in params:
         cmd += ["-p", p.replace("=", ":=", 1)]
-    return subprocess.Popen(cmd, env=ros_environment(domain), stdout=log, stderr=subprocess.STDOUT,
-                            start_new_session=True)
+    p = subprocess.Popen(cmd, env=ros_environment(domain), stdout=log, stderr=subprocess.STDOUT,
+                         start_new_session=True)
+    _PROCS.append(p)
+    return p
 
 
 def wait_checkpoint(ck: Path, timeout: float) -> set:
@@ -157,7 +163,7 @@ def ate(traj, gt) -> float:
     return float(evaluate_trajectory(traj, gt)["ate_sim3_m"])
 
 
-def main() -> None:
+def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--frames", type=int, default=120)
     ap.add_argument("--width", type=int, default=376)
@@ -189,7 +195,6 @@ def main() -> None:
     result: dict = {"frames": len(stamps), "resolution": [args.width, args.height], "cores": os.cpu_count()}
 
     # ---- offline reference
-    t0 = time.perf_counter()
     off = work / "offline"
     mp = work / "bench_params.yaml"
     text = "/**:\n  ros__parameters:\n    mapping:\n      iters_per_keyframe: 20\n      refine_iters: 3\n"
@@ -200,44 +205,60 @@ def main() -> None:
     result["uptime_start"] = os.getloadavg()
     from vings_core.frontend import Frontend, FrontendConfig
     from vings_core.config import load_section
-    fe_alone = Frontend(load_section(FrontendConfig, "frontend", str(mp)), src.calibration.camera)
-    frames = list(open_source(mcap).frames())
-    t1 = time.perf_counter()
-    for f in frames:
-        fe_alone.process(f)
-    fe_alone.finish()
-    fe_wall = time.perf_counter() - t1
-    # in-process, no ROS, same load: what the live graph's front end could reach at best
-    result["frontend_alone"] = {"ate_sim3_m": ate(fe_alone.trajectory(states=("tracking",)), gt),
-                                "fps": len(frames) / fe_wall, "loadavg": os.getloadavg()}
     ate_off = None
-    if "parity" in only:
-        subprocess.run([sys.executable, "-m", "vings_ros.cli", "run", str(mcap), "--out", str(off), "--sync",
-                        "--params", str(mp), "--no-progress"], stdout=log, stderr=subprocess.STDOUT, check=True)
-        ate_off = ate(read_tum(off / "trajectory.tum"), gt)
-        result["offline_sync"] = {"ate_sim3_m": ate_off, "wall_s": time.perf_counter() - t0}
-
     # 201..232: the tests use 1..200; another run on the same domain with the same synthetic stamps
     # would be counted as ours
     domain = 201 + os.getpid() % 32
     from vings_ros.ros_env import cleanup_fastdds_shm, shm_snapshot
     snap = shm_snapshot()
-    lis = Listener(domain)
-    try:
-        if "parity" in only:
-            result["parity"] = run_parity(lis, domain, mcap, gt, graph_params, ate_off, work, log)
-        if "live" in only:
-            result["live_20hz"] = run_live(lis, domain, mcap, graph_params, work, log)
-        if "resume" in only:
-            result["resume"] = run_resume(lis, domain, mcap, stamps, graph_params, work, log)
-    finally:
-        lis.close()
+    lis = None
+
+    def listener():
+        nonlocal lis
+        if lis is None:
+            lis = Listener(domain)
+        return lis
+
+    def frontend_alone() -> dict:
+        fe_alone = Frontend(load_section(FrontendConfig, "frontend", str(mp)), src.calibration.camera)
+        frames = list(open_source(mcap).frames())
+        t1 = time.perf_counter()
+        for f in frames:
+            fe_alone.process(f)
+        fe_alone.finish()
+        fe_wall = time.perf_counter() - t1
+        # in-process, no ROS, same load: what the live graph's front end could reach at best
+        return {"ate_sim3_m": ate(fe_alone.trajectory(states=("tracking",)), gt),
+                "fps": len(frames) / fe_wall, "loadavg": os.getloadavg()}
+
+    def offline() -> dict:
+        nonlocal ate_off
+        t0 = time.perf_counter()
+        subprocess.run([sys.executable, "-m", "vings_ros.cli", "run", str(mcap), "--out", str(off), "--sync",
+                        "--params", str(mp), "--no-progress"], stdout=log, stderr=subprocess.STDOUT, check=True)
+        ate_off = ate(read_tum(off / "trajectory.tum"), gt)
+        return {"ate_sim3_m": ate_off, "wall_s": time.perf_counter() - t0}
+
+    steps = [("frontend_alone", frontend_alone)]
+    if "parity" in only:
+        steps += [("offline_sync", offline),
+                  ("parity", lambda: run_parity(listener(), domain, mcap, gt, graph_params, ate_off, work, log))]
+    if "live" in only:
+        steps.append(("live_20hz", lambda: run_live(listener(), domain, mcap, graph_params, work, log)))
+    if "resume" in only:
+        steps.append(("resume", lambda: run_resume(listener(), domain, mcap, stamps, graph_params, work, log)))
+
+    def finish(r: dict) -> None:
+        for p in _PROCS:     # a failed experiment leaves its nodes running: stop them
+            stop(p, 30)
+        if lis is not None:
+            lis.close()
         log.close()
         time.sleep(1.0)
         # the SIGKILLed mapper leaves its Fast DDS segment and ports behind
-        result["shm_files_removed"] = len(cleanup_fastdds_shm(snap))
-    result["uptime_end"] = os.getloadavg()
-    print(json.dumps(result))
+        r["shm_files_removed"] = len(cleanup_fastdds_shm(snap))
+        r["uptime_end"] = os.getloadavg()
+    return run_experiments(steps, result, finish=finish)
 
 
 def run_parity(lis, domain, mcap, gt, graph_params, ate_off, work, log) -> dict:
@@ -341,4 +362,4 @@ def run_resume(lis, domain, mcap, stamps, graph_params, work, log) -> dict:
 
 
 if __name__ == "__main__":
-    main()
+    raise SystemExit(main())

@@ -61,3 +61,24 @@ def test_novel_views_are_never_keyframes_and_json_is_strict():
     json.dumps(out, allow_nan=False)
     assert m._finite_mean([]) is None and m._finite_mean([1.0, 3.0]) == 2.0
     assert m.peak_rss_mb() > 10          # this very process holds more than 10 MB
+
+
+def test_harness_always_prints_one_json_line_naming_what_failed(capsys):
+    """A failing experiment, one with null figures and an interrupted one: the others' figures stay,
+    ``failed`` names them, and the JSON is the last stdout line also when the interrupt goes on."""
+    h = _load("_harness")
+    out: dict = {}
+    steps = [("a", lambda: {"x": 1}), ("b", lambda: 1 / 0), ("c", lambda: {"x": None, "incomplete": "x is null"})]
+    assert h.run_experiments(steps, out, log=lambda *a: None) == 1
+    last = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert last["a"] == {"x": 1} and last["b"]["error"].startswith("ZeroDivisionError")
+    assert last["failed"] == ["b", "c"]
+
+    def interrupted():
+        raise KeyboardInterrupt
+    out = {}
+    with pytest.raises(KeyboardInterrupt):
+        h.run_experiments([("a", lambda: {"x": 1}), ("i", interrupted), ("never", lambda: {})], out,
+                          finish=lambda o: o.update(cleaned=True))
+    last = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert last == {"a": {"x": 1}, "i": {"error": "interrupted (Ctrl-C)"}, "failed": ["i"], "cleaned": True}

@@ -822,3 +822,26 @@ def test_clipping_planes_and_the_opacity_cut():
     for near, far in ((1.0, 1.0), (2.0, 1.0)):
         with pytest.raises(InputError, match="near"):
             rasterize_2dgs(*one, eye, CAM, near=near, far=far)
+
+
+def test_bad_arguments_are_input_errors_naming_them():
+    g = _scene(20)
+    for kw, match in (({"sample_ratio": "x"}, "sample_ratio must be a number"),
+                      ({"near": "a"}, "near must be a number"),
+                      ({"far": None}, "far must be a number")):
+        with pytest.raises(InputError, match=match):
+            _fast(g, **kw)
+    op = g[3].clone()
+    op[4] = 5.0                                  # a logit, not an activated opacity
+    with pytest.raises(InputError, match=r"opacities must be activated, in \[0, 1\]; got 5 \(Gaussian 4\)"):
+        _fast([*g[:3], op, g[4]])
+    with pytest.raises(InputError, match="quats are on meta"):
+        _fast([g[0], g[1].to("meta"), *g[2:]])
+    with pytest.raises(InputError, match="larger than 16384 px"):
+        rasterize_2dgs(*g, T_CW, CameraModel(70000, 70000, 5e4, 5e4, 35000.0, 35000.0))
+    with pytest.raises(InputError, match="means must have shape"):
+        render_reference(g[0][:, :2], *g[1:], torch.tensor(T_CW), CAM)
+    with pytest.raises(InputError, match="loss_map .* is required"):
+        gaussian_scores(*g, T_CW, CAM, None)
+    with pytest.raises(InputError, match="ratio must be a number"):
+        select_sample_pixels(torch.rand(16, 16), "a")

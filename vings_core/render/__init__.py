@@ -28,7 +28,11 @@ def select_sample_pixels(score, ratio: float):
     from ..errors import InputError
     from .kernels import select_pixels
     from .rasterize import _as_numpy
-    if not (0.0 < float(ratio) <= 1.0):
+    try:
+        r = float(ratio)
+    except (TypeError, ValueError):
+        raise InputError(f"select_sample_pixels: ratio must be a number, got {ratio!r}") from None
+    if not (0.0 < r <= 1.0):
         raise InputError(f"select_sample_pixels: ratio must be in (0, 1], got {ratio}")
     s = _as_numpy(score, np.float64, "select_sample_pixels: score")
     if s.ndim != 2:

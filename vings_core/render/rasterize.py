@@ -319,6 +319,9 @@ def _prepare(means, quats, scales, opacities, colors, T_cw, camera, sh_degree, p
     if camera.is_distorted:
         raise InputError("rasterize_2dgs: camera has lens distortion; render with the undistorted "
                          "model (CameraModel.undistorted()) and undistort the images")
+    if max(camera.width, camera.height) > MAX_IMAGE_SIDE:
+        raise InputError(f"rasterize_2dgs: camera {camera.width}x{camera.height} is larger than "
+                         f"{MAX_IMAGE_SIDE} px per side")
     means = _check("means", means, (3,), None)
     N = means.shape[0]
     if means.dtype not in (torch.float32, torch.float64):
@@ -343,12 +346,36 @@ def _prepare(means, quats, scales, opacities, colors, T_cw, camera, sh_degree, p
         if not 0 <= int(sh_degree) <= 3 or colors.shape[1] < (int(sh_degree) + 1) ** 2:
             raise InputError(f"rasterize_2dgs: sh_degree={sh_degree} needs 0..3 and at least "
                              f"{(int(sh_degree) + 1) ** 2} coefficients, got {colors.shape[1]}")
+    for name, t in (("quats", quats), ("scales", scales), ("opacities", opacities), ("colors", colors)):
+        if t.device != means.device:
+            raise InputError(f"rasterize_2dgs: {name} are on {t.device}, means on {means.device}; "
+                             f"put every input on one device")
+    o = opacities.detach()
+    lo, hi = torch.aminmax(o) if N else (torch.zeros(()), torch.zeros(()))
+    # (one pass when all is well; non-finite opacities are culled, not refused: module doc)
+    bad = ((o < 0) | (o > 1)) & torch.isfinite(o) if not (bool(lo >= 0) and bool(hi <= 1)) else None
+    if bad is not None and bool(bad.any()):
+        raise InputError(f"rasterize_2dgs: opacities must be activated, in [0, 1]; got "
+                         f"{float(o[bad][0]):.6g} (Gaussian {int(bad.nonzero()[0, 0])})")
     T = _finite_tensor("T_cw", T_cw, (4, 4))
     if pose_delta is not None:
         pose_delta = _finite_tensor("pose_delta", pose_delta, (6,))
+    near, far = _number("near", near), _number("far", far)
     if not (0 < near < far):
         raise InputError(f"rasterize_2dgs: need 0 < near < far, got near={near}, far={far}")
     return means, quats, scales, opacities, colors, T, pose_delta
+
+
+#: largest image side the renderer accepts (its per-pixel buffers are allocated per call)
+MAX_IMAGE_SIDE = 16384
+
+
+def _number(name: str, value) -> float:
+    """``value`` as a float; InputError naming the argument otherwise."""
+    try:
+        return float(value)
+    except (TypeError, ValueError):
+        raise InputError(f"rasterize_2dgs: {name} must be a number, got {value!r}") from None
 
 
 def apply_pose_delta(pose_delta: torch.Tensor, T_cw: torch.Tensor) -> torch.Tensor:
@@ -470,7 +497,7 @@ def rasterize_2dgs(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tenso
     """
     if backend not in ("auto", "numba", "gsplat"):
         raise InputError(f"rasterize_2dgs: unknown backend {backend!r} (auto, numba, gsplat)")
-    if not (0.0 < float(sample_ratio) <= 1.0):
+    if not (0.0 < _number("sample_ratio", sample_ratio) <= 1.0):
         raise InputError(f"rasterize_2dgs: sample_ratio must be in (0, 1], got {sample_ratio}")
     means, quats, scales, opacities, colors, T, pose_delta = _prepare(
         means, quats, scales, opacities, colors, T_cw, camera, sh_degree, pose_delta, near, far)
@@ -526,6 +553,8 @@ def gaussian_scores(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tens
     Returns ``contribution`` ``sum_u alpha T``, ``error`` ``sum_u L(u) alpha T`` over the pixels
     ``u`` the Gaussian contributes to, and ``pixels_touched``, each ``(N,)``.
     """
+    if loss_map is None:
+        raise InputError("gaussian_scores: loss_map (H, W) is required (the error score needs it)")
     with torch.no_grad():
         out = rasterize_2dgs(means, quats, scales, opacities, colors, T_cw, camera,
                              sh_degree=sh_degree, loss_map=loss_map, near=near, far=far,

@@ -135,6 +135,9 @@ def render_reference(means: torch.Tensor, quats: torch.Tensor, scales: torch.Ten
     (H,W,3)``, ``alpha``, ``distortion``, ``n_contrib`` (per-pixel count) and per-Gaussian
     ``contribution``, ``pixels_touched``, ``error``.
     """
+    from .rasterize import _prepare
+    means, quats, scales, opacities, colors, T_cw, pose_delta = _prepare(
+        means, quats, scales, opacities, colors, T_cw, camera, sh_degree, pose_delta, near, far)
     dt = means.dtype
     H, W = camera.height, camera.width
     T = torch.as_tensor(T_cw, dtype=torch.float64)
