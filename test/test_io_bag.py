@@ -372,3 +372,18 @@ def test_a_linked_bag_finds_the_calibration_beside_its_target(tmp_path):
     shutil.copy(cal, tmp_path / "links" / cal.name)           # one beside the link wins
     (tmp_path / "links" / cal.name).write_text("T_bc: [[1, 0, 0, 0.5], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]\n")
     assert np.isclose(open_source(link).calibration.T_bc[0, 3], 0.5)
+
+
+def test_one_camera_in_two_transports_keeps_its_differently_named_camera_info(tmp_path):
+    """raw + compressed of one camera is one camera: the bag's only CameraInfo (another namespace)
+    is still paired with it (warned); a second camera's images would make it ambiguous."""
+    spec = BagSpec(image_topics={"/usb_cam/image_raw": "mono8", "/usb_cam/image_raw/compressed": "compressed-png"},
+                   camera_info="/camera_info")
+    p = make_bag(tmp_path / "one.mcap", spec, "mcap")
+    src = open_source(p, SourceOptions(image_topic="/usb_cam/image_raw"))
+    assert src.camera_info_topic == "/camera_info" and any("different namespaces" in w for w in src.warnings)
+    spec = BagSpec(image_topics={"/usb_cam/image_raw": "mono8", "/other/image_raw": "mono8"},
+                   camera_info="/camera_info")
+    p = make_bag(tmp_path / "two.mcap", spec, "mcap")
+    with pytest.raises(InputError, match="not in the namespace /usb_cam"):
+        open_source(p, SourceOptions(image_topic="/usb_cam/image_raw"))

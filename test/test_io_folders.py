@@ -301,3 +301,13 @@ def test_kitti_pairs_times_and_poses_by_frame_number(tmp_path):
     src = open_source(root)
     assert src.frame_stamps().tolist() == [500_000_000, 600_000_000, 800_000_000]
     assert any("numbered 9 and above have none" in w for w in src.warnings)
+    # the files cut to 5..9 (a line for the missing image 7 too), the poses file whole
+    (root / "times.txt").write_text("\n".join(lines[5:]) + "\n")
+    (root / "poses.txt").write_text("\n".join(rows) + "\n")
+    src = open_source(root)
+    assert src.frame_stamps().tolist() == [500_000_000, 600_000_000, 800_000_000, 900_000_000]
+    assert src.ground_truth.poses[:, 2, 3].tolist() == [5.0, 6.0, 8.0, 9.0]       # by number
+    assert any("line 0 taken as image 5" in w for w in src.warnings)
+    (root / "times.txt").write_text("\n".join(lines[:2]) + "\n")
+    with pytest.raises(InputError, match="2 times, none for the images numbered 5..9"):
+        open_source(root)

@@ -456,6 +456,21 @@ def test_passive_store_failed_spill_keeps_the_chunk_in_memory(tmp_path, caplog):
     store.close()
 
 
+def test_a_spill_folder_that_cannot_be_made_keeps_records_in_memory(tmp_path, monkeypatch, caplog):
+    """The private temporary folder is made on the first spill: a temp dir that is gone or full
+    keeps the chunk / record in memory (warned), as a failed write does."""
+    import tempfile
+    from vings_core.mapping.history import HistoryStore, compact_keyframe
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path / "gone"))
+    store = PassiveStore(memory_budget_bytes=0)
+    hist = HistoryStore(0)
+    with caplog.at_level("WARNING"):
+        store.put(_random_map(50), {1: np.eye(4), 2: np.eye(4), 3: np.eye(4)})
+        hist.put(7, compact_keyframe(_kf(7, np.eye(4), torch.full((24, 32), 2.0), _cam(32, 24))))
+    assert caplog.text.count("cannot create a spill folder") == 2
+    assert store.num_gaussians == 50 and store.memory_bytes > 0 and hist.get(7) is not None
+
+
 def test_damaged_checkpoint_is_an_input_error(tmp_path):
     from vings_core.errors import InputError
     for name, data in (("empty.ckpt", b""), ("trunc.ckpt", b"PK\x03\x04garbage")):

@@ -105,3 +105,20 @@ def test_node_settings_that_fail_later_are_refused_at_start(tmp_path, key, value
     p.write_text(yaml.safe_dump({"/**": {"ros__parameters": {"ros": {key: value}}}}))
     with pytest.raises(ConfigError, match=match):
         load_section(NodeConfig, "ros", p)
+
+
+def test_lenient_reading_keeps_what_rclpy_and_other_nodes_own(tmp_path):
+    """What launch_ros writes (use_sim_time), qos_overrides and other nodes' blocks are valid for
+    the nodes (rclpy takes them): the nodes' pre-check and the launcher read leniently."""
+    from vings_ros.launch import Launcher, LaunchOptions
+    p = tmp_path / "p.yaml"
+    p.write_text("/**:\n  ros__parameters:\n    use_sim_time: true\n    ros:\n      shutdown_timeout_s: 30.0\n"
+                 "    qos_overrides:\n      /clock:\n        subscription:\n          depth: 5\n"
+                 "other_node:\n  ros__parameters:\n    gain: [1.0, 2.0]\n")
+    with pytest.raises(ConfigError, match="unknown parameter section"):
+        read_params_file(p)                                  # `vings run --params`: strict
+    assert read_params_file(p, strict=False) == {"ros": {"shutdown_timeout_s": 30.0}}
+    assert Launcher(LaunchOptions(params_file=str(p))).stop_timeout["mapper_node"] == 180.0
+    p.write_text("/**:\n  ros__parameters:\n    use_sim_time: true\n    mapping.background: [0, 1, 1.0]\n")
+    with pytest.raises(ConfigError, match="mapping.background: ROS 2 list parameters hold one"):
+        read_params_file(p, strict=False)                    # rcl would refuse it anyway

@@ -31,12 +31,14 @@ C = TypeVar("C")
 KNOWN_SECTIONS = ("ros", "frontend", "mapping", "run")
 
 
-def read_params_file(path: str | os.PathLike, sections: tuple = KNOWN_SECTIONS) -> dict:
+def read_params_file(path: str | os.PathLike, sections: tuple = KNOWN_SECTIONS, strict: bool = True) -> dict:
     """Merged ``ros__parameters`` of every node block of a ROS 2 params YAML (``/**`` first).
 
     Dotted names (``mapping.window_size: 4``, valid ROS 2 params syntax) are expanded into their
     sections; a section other than ``sections`` (default :data:`KNOWN_SECTIONS`; e.g. a misspelt
-    ``mappping``) is a :class:`ConfigError`, as the nodes treat it."""
+    ``mappping``) is a :class:`ConfigError`, as the nodes treat it; with ``strict=False`` other
+    keys (rclpy's ``use_sim_time``, ``qos_overrides``, blocks for other nodes) are left out instead.
+    Lists rcl cannot hold (mixed types, empty) are refused in either case."""
     path = Path(path)
     if not path.is_file():
         raise ConfigError(f"{path}: params file not found")
@@ -60,6 +62,8 @@ def read_params_file(path: str | os.PathLike, sections: tuple = KNOWN_SECTIONS) 
         _deep_merge(merged, _expand_dotted(params, f"{path}: node block {node!r}"))
     _check_ros_lists(merged, f"{path}")
     unknown = [k for k in merged if k not in sections]
+    if unknown and not strict:      # rclpy's own (use_sim_time, qos_overrides) or other nodes' keys
+        return {k: v for k, v in merged.items() if k in sections}
     if unknown:
         raise ConfigError(f"{path}: unknown parameter section(s) {', '.join(map(repr, unknown))}; "
                           f"parameters live in the sections {', '.join(sections)} "

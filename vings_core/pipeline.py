@@ -798,8 +798,12 @@ class SlamRunner:
             out.discard_staged()
             self._save_partial()
             raise
-        out.begin_final()
-        out.commit_staged()
+        try:
+            out.begin_final()
+            out.commit_staged()
+        except BaseException:       # milliseconds of renames; still, keep this run's trajectory
+            self._save_partial()
+            raise
         m = final["metrics"]
         m["peak_rss_mb"] = peak_rss_mb()
         wall = time.perf_counter() - t0     # reading to the last output before metrics.json

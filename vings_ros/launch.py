@@ -69,7 +69,7 @@ class Launcher:
         self.procs: dict[str, subprocess.Popen] = {}
         self._stopping = False
         # read here (one line for a bad file, before any node starts; the nodes read it again)
-        sections = read_params_file(opt.params_file) if opt.params_file else {}
+        sections = read_params_file(opt.params_file, strict=False) if opt.params_file else {}
         drain = opt.extra_params.get("ros.shutdown_timeout_s",
                                      sections.get("ros", {}).get("shutdown_timeout_s", 120.0))
         self.stop_timeout = dict(STOP_TIMEOUT_S)

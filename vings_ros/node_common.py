@@ -257,15 +257,15 @@ def run_node(make_node: Callable[[], Any], args: Optional[list[str]] = None) -> 
     files = [argv[i + 1] for i, a in enumerate(argv[:-1]) if a == "--params-file"]
     try:
         for f in files:     # rcl parses them in init, with a traceback for a bad file
-            read_params_file(f)
+            read_params_file(f, strict=False)
         rclpy.init(args=argv, signal_handler_options=rclpy.signals.SignalHandlerOptions.NO)
     except VingsError as e:
         print(f"vings node: error: {e}", file=sys.stderr)
         return 2
     except RuntimeError as e:    # rclpy's RCLError: arguments or a params file rcl cannot parse
         why = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
-        print(f"vings node: error: {', '.join(files) or 'ROS arguments'}: rcl cannot parse them ({why})",
-              file=sys.stderr)
+        print(f"vings node: error: rcl cannot parse the ROS arguments or params files "
+              f"({' '.join(argv[1:])}): {why}", file=sys.stderr)
         return 2
     stop = threading.Event()
 

@@ -31,8 +31,9 @@ from ..geometry import np_project_rotation, np_quat_to_rotmat, rotation_angle_de
 from ..trajectory_io import sec_nsec_to_ns
 from ..types import CameraModel, Frame
 from .base import SourceOptions
-from .calib_yaml import (CalibParts, camera_info_intrinsics, distortion_model_name, is_rectified_topic, topic_namespace,
-                         make_camera, read_calibration_parts, rectified_camera_matrix)
+from .calib_yaml import (CalibParts, camera_info_intrinsics, camera_topic, distortion_model_name,
+                         is_rectified_topic, make_camera, read_calibration_parts, rectified_camera_matrix,
+                         topic_namespace)
 from .common import LoaderSource, check_size, late_entries, order_stamps
 from .image_codec import decode_compressed, decode_image
 
@@ -238,8 +239,9 @@ class BagSource(LoaderSource):
             return mine[0]
         if not cands:
             return None
-        images = [t for t in self._topics_of(IMAGE_TYPES) if self.topic_table[t]["count"] > 0]
-        if len(cands) == 1 and images == [self.image_topic]:
+        # the bag's cameras: image topics without their transport (raw + compressed is one camera)
+        cameras = {camera_topic(t) for t in self._topics_of(IMAGE_TYPES) if self.topic_table[t]["count"] > 0}
+        if len(cands) == 1 and cameras == {camera_topic(self.image_topic)}:
             # one camera in the bag, its CameraInfo named differently: no other camera to mix up
             self._warn(f"{self.path}: using {cands[0]} for the image topic {self.image_topic} (the only "
                        f"camera-info and image topics, in different namespaces)")

@@ -136,6 +136,11 @@ def _topic_names(topic) -> list[str]:
     return parts
 
 
+def camera_topic(topic: str) -> str:
+    """The topic without its image-transport suffix (``/cam/image_raw/compressed`` -> ``/cam/image_raw``)."""
+    return "/" + "/".join(_topic_names(topic))
+
+
 def topic_namespace(topic: str) -> str:
     """The camera namespace of an image or CameraInfo topic: the topic without its transport
     suffix and last name (``/stereo/left/image_raw/compressed`` -> ``/stereo/left``)."""

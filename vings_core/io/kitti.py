@@ -135,14 +135,17 @@ class KittiSource(FileFramesSource):
             st, _, _ = read_table(times, 1, "frame times (times.txt)", stamp_in_seconds=True)
             if len(st) == 0:
                 raise InputError(f"{times}: no time stamps")
-            idx = self._line_index(idx, len(st), len(files), times, "times")
-            keep = idx < len(st)
+            line = self._line_index(idx, len(st), times, "times")
+            keep = line < len(st)
+            if not keep.any():
+                raise InputError(f"{times}: {len(st)} times, none for the images numbered "
+                                 f"{int(idx.min())}..{int(idx.max())}")
             if not keep.all():
                 self._warn(f"{times}: {len(st)} times; the {int((~keep).sum())} image(s) numbered "
                            f"{int(idx[~keep][0])} and above have none and are left out")
                 files = [f for f, k in zip(files, keep) if k]
-                idx = idx[keep]
-            st = st[idx]
+                idx, line = idx[keep], line[keep]
+            st = st[line]
         else:
             self._warn(f"{times} not found: assuming 10 Hz frames from t = 0")
             st = idx * 100_000_000
@@ -172,7 +175,7 @@ class KittiSource(FileFramesSource):
             P_cam = self._lever_arm_camera(cam)
         if pose_file is not None:
             poses = read_kitti_poses(pose_file)
-            pidx = self._line_index(idx, len(poses), len(files), pose_file, "poses")
+            pidx = self._line_index(idx, len(poses), pose_file, "poses")
             has = pidx < len(poses)
             if not has.all():
                 self._warn(f"{pose_file}: {len(poses)} poses; no ground truth for the "
@@ -187,14 +190,22 @@ class KittiSource(FileFramesSource):
                 poses = poses @ T0c
             self._set_gt(all_st, poses, str(pose_file), "camera")
 
-    def _line_index(self, idx: np.ndarray, n_lines: int, n_files: int, path: Path, what: str) -> np.ndarray:
-        """Line of ``path`` (times / poses, one line per frame number) for each image: its frame
-        number; by position when the numbers run past the file but it has one line per image (a
-        subset whose files were cut to it). Warned when the two readings disagree."""
-        if len(idx) and idx.max() >= n_lines and n_lines == n_files:
+    def _line_index(self, idx: np.ndarray, n_lines: int, path: Path, what: str) -> np.ndarray:
+        """Line of ``path`` (times / poses: one line per frame number) for each image number
+        ``idx``: the number itself; when the file does not even reach the first image's number (it
+        was cut to the subset), the number less the first one if their span fits, else the image's
+        position if the file has one line per image; both warned. Lines past the file mean no time /
+        pose for that image (the caller's business)."""
+        if not len(idx) or idx.min() < n_lines:
+            return idx
+        if idx.max() - idx.min() < n_lines:
+            self._warn(f"{path}: {n_lines} {what} for images numbered {int(idx.min())}..{int(idx.max())}: "
+                       f"line 0 taken as image {int(idx.min())} (a file cut to the subset)")
+            return idx - idx.min()
+        if n_lines == len(idx):
             self._warn(f"{path}: {n_lines} {what} for images numbered up to {int(idx.max())}: "
                        f"paired by position (one line per image)")
-            return np.arange(n_files, dtype=np.int64)
+            return np.arange(n_lines, dtype=np.int64)
         return idx
 
     def _lever_arm_camera(self, cam: int) -> Optional[np.ndarray]:

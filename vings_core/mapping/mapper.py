@@ -347,21 +347,27 @@ class Mapper:
             raise InputError(f"{path}: map checkpoint not found")
         try:
             z = np.load(path, allow_pickle=False)
-            if not isinstance(z, np.lib.npyio.NpzFile):
-                raise InputError(f"{path}: not a VINGS map checkpoint (a single .npy array, not an .npz)")
-            with z:
-                return Mapper._from_npz(z, path, config, device)
-        except _BAD_CHECKPOINT as e:
-            raise InputError(f"{path}: not a VINGS map checkpoint, or damaged "
-                             f"({type(e).__name__}: {e})") from None
+        except NPZ_READ_ERRORS as e:
+            raise InputError(f"{path}: not a VINGS map checkpoint ({type(e).__name__}: {e})") from None
+        if not isinstance(z, np.lib.npyio.NpzFile):
+            raise InputError(f"{path}: not a VINGS map checkpoint (a single .npy array, not an .npz)")
+        with z:
+            return Mapper._from_npz(_Entries(z, path), path, config, device)
 
     @staticmethod
-    def _from_npz(z, path: Path, config: Optional[MapperConfig], device: str) -> "Mapper":
-        """The body of :meth:`load_checkpoint`; entries are read lazily, so every read is in here."""
-        meta = json.loads(bytes(z["meta"]).decode())
+    def _from_npz(z: "_Entries", path: Path, config: Optional[MapperConfig], device: str) -> "Mapper":
+        """The body of :meth:`load_checkpoint`: ``z`` reads entries lazily, each read turning a
+        missing or damaged entry into an InputError naming the file (other errors are bugs)."""
+        try:
+            meta = json.loads(bytes(z["meta"]).decode())
+        except (ValueError, UnicodeDecodeError) as e:
+            raise InputError(f"{path}: not a VINGS map checkpoint (meta: {e})") from None
         if not isinstance(meta, dict) or meta.get("version") != CHECKPOINT_VERSION:
             v = meta.get("version") if isinstance(meta, dict) else None
             raise InputError(f"{path}: checkpoint version {v} not supported")
+        lacking = [k for k in _META_KEYS if k not in meta]
+        if lacking:
+            raise InputError(f"{path}: not a VINGS map checkpoint, or damaged (meta lacks {', '.join(lacking)})")
         cfg = config if config is not None else config_from_dict(MapperConfig, meta["config"], f"{path}: config")
         m = Mapper(cfg, device)
         m.gm = GaussianMap.from_numpy({k: z[f"active/{k}"] for k in ALL_FIELDS}, device)
@@ -895,9 +901,29 @@ class Mapper:
             self.passive.resnapshot(changes)
 
 
-# what reading a damaged or foreign .npz can raise (entries are read lazily, anywhere in the body)
-_BAD_CHECKPOINT = NPZ_READ_ERRORS + (IndexError, TypeError, AttributeError, UnicodeDecodeError,
-                                     RuntimeError)
+_META_KEYS = ("config", "camera", "window", "render_count", "kf_count", "queue", "rqueue", "slots",
+              "counters")
+
+
+class _Entries:
+    """An open checkpoint's entries: a missing or damaged one is an InputError naming the file
+    (``np.load`` reads them lazily, so damage shows where an entry is first read)."""
+
+    def __init__(self, z, path: Path) -> None:
+        self.z, self.path = z, path
+        self.files = z.files
+
+    def __contains__(self, name: str) -> bool:
+        return name in self.z.files
+
+    def __getitem__(self, name: str) -> np.ndarray:
+        try:
+            return self.z[name]
+        except KeyError:
+            raise InputError(f"{self.path}: not a VINGS map checkpoint, or damaged (lacks {name})") from None
+        except NPZ_READ_ERRORS as e:
+            raise InputError(f"{self.path}: not a VINGS map checkpoint, or damaged ({name}: "
+                             f"{type(e).__name__}: {e})") from None
 
 
 def _write_npy(zf: "zipfile.ZipFile", name: str, a) -> None:

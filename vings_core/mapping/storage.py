@@ -96,7 +96,10 @@ class SpillFolder:
     def write(self, name: str, arrays: dict) -> Path:
         """Write ``arrays`` to ``name`` atomically; returns its path. A failed write (disk full,
         folder gone) raises :class:`VingsError` naming the file and leaves no partial file."""
-        path = self.path(name)
+        try:
+            path = self.path(name)
+        except OSError as e:    # the private folder cannot be made (temp dir full or gone)
+            raise VingsError(f"{self.prefix}*: cannot create a spill folder ({e.strerror or e})") from None
 
         def _w(tmp: str) -> None:
             with open(tmp, "wb") as f:

@@ -351,9 +351,15 @@ def _prepare(means, quats, scales, opacities, colors, T_cw, camera, sh_degree, p
             raise InputError(f"rasterize_2dgs: {name} are on {t.device}, means on {means.device}; "
                              f"put every input on one device")
     o = opacities.detach()
-    lo, hi = torch.aminmax(o) if N else (torch.zeros(()), torch.zeros(()))
+    if not N:
+        lo = hi = 0.0
+    elif o.is_cuda:
+        lo, hi = (float(v) for v in torch.aminmax(o))
+    else:           # one pass in numpy (torch's aminmax spins up its thread pool: ms at 300k)
+        a = o.numpy()
+        lo, hi = float(a.min()), float(a.max())
     # (one pass when all is well; non-finite opacities are culled, not refused: module doc)
-    bad = ((o < 0) | (o > 1)) & torch.isfinite(o) if not (bool(lo >= 0) and bool(hi <= 1)) else None
+    bad = ((o < 0) | (o > 1)) & torch.isfinite(o) if not (lo >= 0 and hi <= 1) else None
     if bad is not None and bool(bad.any()):
         raise InputError(f"rasterize_2dgs: opacities must be activated, in [0, 1]; got "
                          f"{float(o[bad][0]):.6g} (Gaussian {int(bad.nonzero()[0, 0])})")
