@@ -8,6 +8,7 @@ import os
 import signal
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -329,10 +330,14 @@ def test_graph_errors_are_one_line(recording, ros, listener_factory):
     lis = listener_factory(ack=False)
     from std_msgs.msg import Header
     lis.node.create_publisher(Header, T.PROCESSED_TOPIC, T.ack_qos())
-    proc = start_replay(ros, root, "--wait-for-graph", "--ack-timeout", "1", "--rate", "0")
+    log = Path(tempfile.mkdtemp()) / "pub.csv"
+    proc = start_replay(ros, root, "--wait-for-graph", "--ack-timeout", "1", "--rate", "0",
+                        "--publish-log", str(log))
     _, err = lis.spin_while(proc, linger=0.0)
     assert proc.returncode == 2
     assert f"no acknowledgement of the image stamped {T0}" in err and "Traceback" not in err
+    # the image that went out before the timeout is in the publish log all the same
+    assert [ln.split(",")[0] for ln in log.read_text().splitlines()[1:]] == [str(T0)]
 
 
 def test_sigterm_stops_a_looping_replay_cleanly(recording, ros, listener_factory):

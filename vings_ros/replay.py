@@ -450,6 +450,7 @@ class Replayer:
         self._gyro_var, self._accel_var = imu_variances(self.source.calibration)
         self._plan()
         wall0 = None
+        error = None
         try:
             self._setup()
             self._wait_startup()
@@ -460,6 +461,8 @@ class Replayer:
                     break
         except KeyboardInterrupt:
             self.stats.interrupted = True
+        except VingsError as e:     # e.g. GraphTimeout mid-replay: what was published is still logged
+            error = e
         finally:
             wall = time.monotonic() - wall0 if wall0 is not None else 0.0
             self._teardown()
@@ -481,6 +484,8 @@ class Replayer:
                     f"{s},{w}\n" for s, w in self._pub_log))
             except VingsError as e:   # the replay itself is done: report, keep the statistics
                 self._print(f"replay: warning: publish log not written: {e}")
+        if error is not None:
+            raise error
         return st
 
 
