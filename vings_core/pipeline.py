@@ -794,14 +794,10 @@ class SlamRunner:
             self.mapper.save_checkpoint(out.staging_path(out.checkpoint_path))
             for name, rgb in final["renders"].items():
                 out.save_render(name, rgb, staged=True)
+            out.begin_final()
+            out.commit_staged()     # milliseconds of renames
         except BaseException:
             out.discard_staged()
-            self._save_partial()
-            raise
-        try:
-            out.begin_final()
-            out.commit_staged()
-        except BaseException:       # milliseconds of renames; still, keep this run's trajectory
             self._save_partial()
             raise
         m = final["metrics"]

@@ -73,7 +73,6 @@ class FrontendNode(Node):
         self._last_skip = ""
         self.bad_camera_infos = 0
         self.camera_changes = 0         # CameraInfo messages that differ from the camera in use
-        self._camera_from_info = False
         # made now (a learned model loads its weights file): a wrong path is a start-up error, not
         # one that ends the node when the camera appears
         self._flow = make_flow_estimator(self.fcfg)
@@ -119,7 +118,7 @@ class FrontendNode(Node):
         self.queue.put(msg)
 
     def _on_camera_info(self, msg: CameraInfo) -> None:
-        if self.raw_camera is not None and not self._camera_from_info:
+        if self.ncfg.calib_file:
             return      # ros.calib_file gives the camera
         try:
             cam = camera_info_to_camera(msg, T.CAMERA_INFO_TOPIC, self._rectified)
@@ -131,7 +130,6 @@ class FrontendNode(Node):
                                           f"{T.CAMERA_INFO_TOPIC} message(s): {e}")
             return
         if self.raw_camera is None:
-            self._camera_from_info = True
             self._set_camera(cam)
         elif cam != self.raw_camera:
             # the map and the front end's state belong to the first camera: keep it

@@ -18,10 +18,13 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Optional, TextIO
 
-from vings_core.config import read_params_file
+import yaml
+
+from vings_core.config import config_from_dict, read_params_file
 from vings_core.errors import ConfigError
 from vings_core.util import check_output_file
 
+from .node_common import NodeConfig
 from .ros_env import cleanup_fastdds_shm, ros_environment, shm_snapshot
 
 NODES = {"frontend_node": "vings_ros.frontend_node", "mapper_node": "vings_ros.mapper_node",
@@ -68,16 +71,15 @@ class Launcher:
         self.out = out or sys.stderr
         self.procs: dict[str, subprocess.Popen] = {}
         self._stopping = False
-        # read here (one line for a bad file, before any node starts; the nodes read it again)
+        # the nodes' ros section as they will see it (params file, then -p), checked before any node
+        # starts; its shutdown_timeout_s sets how long the mapper may take to stop
         sections = read_params_file(opt.params_file, strict=False) if opt.params_file else {}
-        drain = opt.extra_params.get("ros.shutdown_timeout_s",
-                                     sections.get("ros", {}).get("shutdown_timeout_s", 120.0))
-        self.stop_timeout = dict(STOP_TIMEOUT_S)
-        try:
-            self.stop_timeout["mapper_node"] = max(STOP_TIMEOUT_S["mapper_node"],
-                                                   float(drain) + MAPPER_SAVE_MARGIN_S)
-        except (TypeError, ValueError):
-            pass        # the mapper node reports the bad value itself
+        ros = {**sections.get("ros", {}),
+               **{k.split(".", 1)[1]: yaml.safe_load(v) if isinstance(v, str) else v   # as rcl parses -p
+                  for k, v in opt.extra_params.items() if k.startswith("ros.")}}
+        ncfg = config_from_dict(NodeConfig, ros, "vings launch: ros")
+        self.stop_timeout = {**STOP_TIMEOUT_S, "mapper_node": max(
+            STOP_TIMEOUT_S["mapper_node"], ncfg.shutdown_timeout_s + MAPPER_SAVE_MARGIN_S)}
         if opt.record and not str(opt.record).endswith(".mcap"):
             raise ConfigError(f"--record {opt.record}: the output must be a .mcap file")
         if opt.record:      # before any node starts, not when the recorder dies

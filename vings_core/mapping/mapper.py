@@ -118,23 +118,25 @@ class Mapper:
             raise InputError(f"set_keyframe_poses: unknown keyframe stamps {unknown[:5]}")
         # every pose checked before any is applied: a bad one leaves the map as it was
         checked = {s: _check_pose(T, f"set_keyframe_poses[{s}]") for s, T in poses.items()}
-        deltas, changes = {}, {}
-        for s, T in checked.items():
-            old = self._poses[int(s)]
-            if np.array_equal(T, old):
-                continue
-            deltas[int(s)] = T @ np.linalg.inv(old)
-            changes[int(s)] = (old, T.copy())
-            self._poses[int(s)] = T.copy()
-        if not deltas:
+        changes = {int(s): (self._poses[int(s)], T.copy()) for s, T in checked.items()
+                   if not np.array_equal(T, self._poses[int(s)])}
+        self._commit_poses(changes, move_gaussians)
+
+    def _commit_poses(self, changes: dict[int, tuple[np.ndarray, np.ndarray]], move_gaussians: bool) -> None:
+        """Keyframe pose changes ``{stamp: (T_old, T_new)}`` (``T_wc``) into the stored poses and the
+        window keyframes. ``move_gaussians``: each keyframe's active Gaussians follow it rigidly
+        (``T_new T_old^-1``; passive ones on their return); else no Gaussian moves (a move still
+        pending for passive ones stays)."""
+        if not changes:
             return
+        for s, (_, T) in changes.items():
+            self._poses[s] = T
         for kf in self.window:
-            if kf.stamp_ns in deltas:
+            if kf.stamp_ns in changes:
                 kf.T_wc = torch.from_numpy(self._poses[kf.stamp_ns].copy())
-        if move_gaussians and len(self.gm):
-            self._move_active_by_owner(deltas)
-        if not move_gaussians:
-            # passive Gaussians must not follow either (a move still pending for them stays)
+        if move_gaussians:
+            self._move_active_by_owner({s: new @ np.linalg.inv(old) for s, (old, new) in changes.items()})
+        else:
             self.passive.resnapshot(changes)
 
     def add_keyframe(self, kf: Keyframe) -> dict:
@@ -884,21 +886,12 @@ class Mapper:
         if moved.numel() == 0:
             return
         D = se3_exp(xi[moved]).numpy()
-        deltas, changes = {}, {}
+        changes = {}
         for j, i in enumerate(moved.tolist()):
             s = int(owners[i])
-            new = self._poses[s] @ D[j]
-            deltas[s] = new @ np.linalg.inv(self._poses[s])   # world-frame motion (for the Gaussians)
-            changes[s] = (self._poses[s], new)
-            self._poses[s] = new
-        for kf in self.window:
-            if kf.stamp_ns in deltas:
-                kf.T_wc = torch.from_numpy(self._poses[kf.stamp_ns].copy())
-        if mode == "multi":
-            self._move_active_by_owner(deltas)
-        else:
-            # single: only the cameras move; the owners' passive Gaussians stay too
-            self.passive.resnapshot(changes)
+            changes[s] = (self._poses[s], self._poses[s] @ D[j])
+        # single: only the cameras move, the owners' Gaussians (active and passive) stay
+        self._commit_poses(changes, move_gaussians=(mode == "multi"))
 
 
 _META_KEYS = ("config", "camera", "window", "render_count", "kf_count", "queue", "rqueue", "slots",

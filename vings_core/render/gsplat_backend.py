@@ -14,7 +14,6 @@ from typing import Optional
 
 import torch
 
-from ..errors import InputError
 from ..types import CameraModel
 
 
@@ -60,14 +59,7 @@ def rasterize_gsplat(means, quats, scales, opacities, colors, T_cw: torch.Tensor
     N = means.shape[0]
     radii = meta["radii"].reshape(N, -1).max(-1).values.to(torch.int32)
     H, W = camera.height, camera.width
-    L = None
-    if loss_map is not None:
-        L = torch.as_tensor(loss_map).to(device=dev, dtype=dt)
-        if tuple(L.shape) != (H, W):
-            raise InputError(f"rasterize_2dgs: loss_map must have shape {(H, W)}, got {tuple(L.shape)}")
-        if not bool(torch.isfinite(L).all()):
-            raise InputError("rasterize_2dgs: loss_map has non-finite pixels (they would make the error "
-                             "score NaN)")
+    L = None if loss_map is None else loss_map.to(device=dev, dtype=dt)    # checked by the caller
     with torch.no_grad():
         contribution, error = _scores(rasterization_2dgs, means, wxyz, sc3, opacities, T, Ks, camera,
                                       near, far, L)

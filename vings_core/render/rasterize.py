@@ -308,6 +308,47 @@ def _finite_tensor(name: str, value, shape: tuple) -> torch.Tensor:
     return t
 
 
+#: largest image side the renderer accepts (its per-pixel buffers are allocated per call)
+MAX_IMAGE_SIDE = 16384
+
+
+def _number(name: str, value) -> float:
+    """``value`` as a float; InputError naming the argument otherwise."""
+    try:
+        return float(value)
+    except (TypeError, ValueError):
+        raise InputError(f"rasterize_2dgs: {name} must be a number, got {value!r}") from None
+
+
+def _check_opacities(o: torch.Tensor) -> None:
+    """Finite opacities must be activated, in [0, 1] (non-finite ones are culled: module doc).
+    One min/max pass when all is well (numpy on the CPU: torch's spins up its thread pool)."""
+    if not o.numel():
+        return
+    lo, hi = (torch.aminmax(o) if o.is_cuda else (o.numpy().min(), o.numpy().max()))
+    if float(lo) >= 0 and float(hi) <= 1:
+        return
+    bad = ((o < 0) | (o > 1)) & torch.isfinite(o)
+    if bool(bad.any()):
+        raise InputError(f"rasterize_2dgs: opacities must be activated, in [0, 1]; got "
+                         f"{float(o[bad][0]):.6g} (Gaussian {int(bad.nonzero()[0, 0])})")
+
+
+def _loss_map(loss_map: Optional[ArrayLike], H: int, W: int) -> Optional[torch.Tensor]:
+    """``loss_map`` as an ``(H, W)`` tensor of finite values (None stays None); InputError otherwise.
+    Checked once for both routes."""
+    if loss_map is None:
+        return None
+    t = loss_map.detach() if torch.is_tensor(loss_map) else torch.from_numpy(
+        _as_numpy(loss_map, np.float64, "loss_map"))
+    if tuple(t.shape) != (H, W):
+        raise InputError(f"rasterize_2dgs: loss_map must have shape {(H, W)}, got {tuple(t.shape)}")
+    if not bool(torch.isfinite(t).all()):
+        raise InputError(f"rasterize_2dgs: loss_map has {int((~torch.isfinite(t)).sum())} non-finite "
+                         "pixels (they would make the error score NaN)")
+    return t
+
+
 def _prepare(means, quats, scales, opacities, colors, T_cw, camera, sh_degree, pose_delta,
              near, far):
     """Validate inputs; return (means, quats, scales, opacities, colors, T_cw tensor, pose_delta).
@@ -350,19 +391,7 @@ def _prepare(means, quats, scales, opacities, colors, T_cw, camera, sh_degree, p
         if t.device != means.device:
             raise InputError(f"rasterize_2dgs: {name} are on {t.device}, means on {means.device}; "
                              f"put every input on one device")
-    o = opacities.detach()
-    if not N:
-        lo = hi = 0.0
-    elif o.is_cuda:
-        lo, hi = (float(v) for v in torch.aminmax(o))
-    else:           # one pass in numpy (torch's aminmax spins up its thread pool: ms at 300k)
-        a = o.numpy()
-        lo, hi = float(a.min()), float(a.max())
-    # (one pass when all is well; non-finite opacities are culled, not refused: module doc)
-    bad = ((o < 0) | (o > 1)) & torch.isfinite(o) if not (lo >= 0 and hi <= 1) else None
-    if bad is not None and bool(bad.any()):
-        raise InputError(f"rasterize_2dgs: opacities must be activated, in [0, 1]; got "
-                         f"{float(o[bad][0]):.6g} (Gaussian {int(bad.nonzero()[0, 0])})")
+    _check_opacities(opacities.detach())
     T = _finite_tensor("T_cw", T_cw, (4, 4))
     if pose_delta is not None:
         pose_delta = _finite_tensor("pose_delta", pose_delta, (6,))
@@ -370,18 +399,6 @@ def _prepare(means, quats, scales, opacities, colors, T_cw, camera, sh_degree, p
     if not (0 < near < far):
         raise InputError(f"rasterize_2dgs: need 0 < near < far, got near={near}, far={far}")
     return means, quats, scales, opacities, colors, T, pose_delta
-
-
-#: largest image side the renderer accepts (its per-pixel buffers are allocated per call)
-MAX_IMAGE_SIDE = 16384
-
-
-def _number(name: str, value) -> float:
-    """``value`` as a float; InputError naming the argument otherwise."""
-    try:
-        return float(value)
-    except (TypeError, ValueError):
-        raise InputError(f"rasterize_2dgs: {name} must be a number, got {value!r}") from None
 
 
 def apply_pose_delta(pose_delta: torch.Tensor, T_cw: torch.Tensor) -> torch.Tensor:
@@ -507,6 +524,7 @@ def rasterize_2dgs(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tenso
         raise InputError(f"rasterize_2dgs: sample_ratio must be in (0, 1], got {sample_ratio}")
     means, quats, scales, opacities, colors, T, pose_delta = _prepare(
         means, quats, scales, opacities, colors, T_cw, camera, sh_degree, pose_delta, near, far)
+    loss_map = _loss_map(loss_map, camera.height, camera.width)
     if backend == "gsplat" or (backend == "auto" and means.is_cuda):
         from .gsplat_backend import gsplat_available, rasterize_gsplat
         if gsplat_available():
@@ -529,14 +547,7 @@ def rasterize_2dgs(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tenso
         raise InputError(f"rasterize_2dgs: background must have shape (3,), got {tuple(bg.shape)}")
     if not bool(torch.isfinite(bg.detach()).all()):
         raise InputError(f"rasterize_2dgs: background has non-finite values {bg.detach().tolist()}")
-    loss = None
-    if loss_map is not None:
-        loss = _as_numpy(loss_map, np.float64, "loss_map")
-        if loss.shape != (H, W):
-            raise InputError(f"rasterize_2dgs: loss_map must have shape {(H, W)}, got {loss.shape}")
-        if not np.isfinite(loss).all():
-            raise InputError(f"rasterize_2dgs: loss_map has {int((~np.isfinite(loss)).sum())} non-finite "
-                             "pixels (they would make the error score NaN)")
+    loss = None if loss_map is None else _as_numpy(loss_map, np.float64, "loss_map")
     st = _State(W, H, float(near), float(far), float(sample_ratio), loss)
     holder: list = []
     color, depth, normal, alpha, dist = _Rasterize2DGS.apply(params, bg, st, loss, holder)
