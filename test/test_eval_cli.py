@@ -124,6 +124,33 @@ def test_cli_body_ground_truth_with_calib(capsys, tmp_path):
     assert "--gt-frame body" in capsys.readouterr().err
 
 
+def test_cli_dataset_body_ground_truth_needs_a_known_extrinsic(capsys, tmp_path):
+    """A dataset whose ground truth is of the body but which gives no T_bc (here a TUM RGB-D
+    folder, forced to body, and a EuRoC folder without T_BS) is refused like a TUM file without
+    --calib, not evaluated through an identity extrinsic."""
+    from fixtures_io import T_BC, make_euroc, make_tum
+
+    tum = make_tum(tmp_path / "rgbd_dataset_freiburg1_xyz", n=4)
+    write_tum(tmp_path / "est.tum", open_source_gt(tum))
+    assert "no camera-to-body extrinsic T_bc" in run_err(
+        capsys, ["eval", str(tmp_path / "est.tum"), "--gt", str(tum), "--gt-frame", "body"])
+    eu = make_euroc(tmp_path / "eu", n=4)
+    y = eu / "mav0/cam0/sensor.yaml"
+    y.write_text("\n".join(ln for ln in y.read_text().splitlines()
+                           if not ln.startswith(("T_BS", "  cols", "  rows", "  data"))) + "\n")
+    cam = open_source_gt(eu).right_multiply(T_BC)          # the true cam0 poses
+    write_tum(tmp_path / "est_eu.tum", cam)
+    assert "--calib FILE" in run_err(capsys, ["eval", str(tmp_path / "est_eu.tum"), "--gt", str(eu)])
+    (tmp_path / "c.yaml").write_text("T_bc: " + str([[float(v) for v in r] for r in T_BC]) + "\n")
+    r = run_json(capsys, ["eval", str(tmp_path / "est_eu.tum"), "--gt", str(eu), "--calib", str(tmp_path / "c.yaml")])
+    assert r["gt_frame"] == "body" and r["ate_se3_m"] < 1e-6
+
+
+def open_source_gt(root):
+    from vings_core.io import open_source
+    return open_source(root).ground_truth
+
+
 def test_cli_run_folder_write_metrics(capsys, trajs):
     d, gt, est = trajs
     out = RunOutput(d / "run")

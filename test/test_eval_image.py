@@ -110,6 +110,13 @@ def test_lpips_random_weights_properties(tmp_path, photo, net):
     assert d_ab > 0 and d_ab == pytest.approx(d_ba, rel=1e-9)
     # more different -> larger distance
     assert m.distance(a, 1 - a) > d_ab
+    # the same input checks as psnr/ssim: 0..255 floats or NaN are refused, not measured
+    with pytest.raises(InputError, match=r"first image: values in .* outside \[0, 1\] \(0..255 floats"):
+        m.distance(np.asarray(a, np.float64) * 255, b)
+    with pytest.raises(InputError, match="second image: 1 non-finite"):
+        bad = np.array(b, np.float64)
+        bad.flat[0] = np.nan
+        m.distance(a, bad)
 
 
 def test_lpips_reference_computation(tmp_path, photo):

@@ -56,6 +56,9 @@ def test_update_metrics_merges(tmp_path):
     assert m["frames"] == 10 and m["ate_sim3_m"] == 0.1
     assert out.read_metrics() == m
     assert validate_metrics({}) == metrics_template()
+    # numpy 0-d arrays (what np.mean(..., keepdims=False) of an array can give) are numbers
+    assert validate_metrics({"frames": np.array(3), "ate_sim3_m": np.array(0.5),
+                             "rpe": {"trans_pct": np.array(np.nan)}})["ate_sim3_m"] == 0.5
     # a folder without metrics.json holds no complete run: not silently marked complete
     with pytest.raises(InputError, match="no metrics.json"):
         RunOutput(tmp_path / "incomplete").update_metrics({"ate_sim3_m": 0.1})

@@ -95,6 +95,25 @@ def test_compressed_round_trip(ext):
     assert np.array_equal(decode_compressed(buf, "png"), gray)
 
 
+@pytest.mark.parametrize("pattern", ["rggb", "bggr", "gbrg", "grbg"])
+def test_compressed_bayer_is_demosaiced_like_a_raw_image(pattern):
+    """compressed_image_transport compresses a Bayer image as the raw mosaic and says so in the
+    format ("bayer_rggb8; png compressed "): it must come back RGB, as from a raw Image."""
+    color = {"r": 200, "g": 100, "b": 30}
+    mosaic = np.zeros((8, 10), np.uint8)
+    for k, (dy, dx) in enumerate(((0, 0), (0, 1), (1, 0), (1, 1))):
+        mosaic[dy::2, dx::2] = color[pattern[k]]
+    ok, buf = cv2.imencode(".png", mosaic)
+    out = decode_compressed(buf.tobytes(), f"bayer_{pattern}8; png compressed ", "cam")
+    raw = decode_image(mosaic.tobytes(), f"bayer_{pattern}8", 10, 8, 10)
+    assert out.shape == (8, 10, 3) and np.array_equal(out, raw)
+    assert np.abs(out[3:5, 3:5].astype(int) - [200, 100, 30]).max() <= 2
+    # a colour stream that claims to be Bayer is an error, not a silently wrong image
+    ok, buf = cv2.imencode(".png", np.zeros((8, 10, 3), np.uint8))
+    with pytest.raises(InputError, match="cam: a bayer_rggb8 compressed image must decode to one channel"):
+        decode_compressed(buf.tobytes(), "bayer_rggb8; png compressed ", "cam")
+
+
 def test_corrupt_compressed_and_files(tmp_path):
     with pytest.raises(InputError, match=r"/cam/c @ 5: corrupt compressed image"):
         decode_compressed(b"\xff\xd8 not a jpeg", "jpeg", "/cam/c @ 5")

@@ -14,6 +14,28 @@ from vings_core.io import (EurocSource, KittiSource, SourceOptions, TumSource, d
 
 
 # ------------------------------------------------------------------------------------------ EuRoC
+def test_body_ground_truth_without_extrinsic_is_refused_not_mapped_by_identity(tmp_path):
+    """EuRoC ground truth is of the body; a cam0/sensor.yaml without T_BS used to map it to cam0
+    by an identity placeholder, silently putting the lever arm into every metric."""
+    root = make_euroc(tmp_path / "seq", n=3)
+    assert np.allclose(open_source(root).gt_camera_trajectory().poses,
+                       open_source(root).ground_truth.right_multiply(T_BC).poses)
+    y = root / "mav0/cam0/sensor.yaml"
+    y.write_text("\n".join(ln for ln in y.read_text().splitlines()
+                           if not ln.startswith(("T_BS", "  cols", "  rows", "  data"))) + "\n")
+    src = open_source(root)
+    assert not src.calibration.T_bc_known and np.allclose(src.calibration.T_bc, np.eye(4))
+    with pytest.raises(InputError, match=r"seq: the ground truth is of the body .* no camera-to-body extrinsic T_bc"):
+        src.gt_camera_trajectory()
+    src.gt_frame = "camera"          # taken as camera poses: no extrinsic needed
+    assert src.gt_camera_trajectory() is src.ground_truth
+    # an extrinsic from --calib makes it known again
+    (tmp_path / "c.yaml").write_text("T_bc: " + str([[float(v) for v in r] for r in T_BC]) + "\n")
+    src = open_source(root, SourceOptions(calib_file=str(tmp_path / "c.yaml")))
+    assert src.calibration.T_bc_known
+    assert np.allclose(src.gt_camera_trajectory().poses, src.ground_truth.right_multiply(T_BC).poses)
+
+
 def test_euroc_loader_reads_everything(tmp_path):
     root = make_euroc(tmp_path / "seq", n=5, depth=True, mask=True)
     src = open_source(root)

@@ -496,6 +496,12 @@ def test_ros_environment(tmp_path, monkeypatch):
         ros_env.ros_environment(base={"VINGS_DDS": "carrier-pigeon"})
     with pytest.raises(ConfigError, match="ROS_DOMAIN_ID"):
         ros_env.ros_environment(domain_id=300, base=base)
+    # an inherited value rcl cannot use is named before rclpy.init() (which fails deep inside)
+    for bad in ("abc", "-1", "300"):
+        with pytest.raises(ConfigError, match=f"environment variable ROS_DOMAIN_ID='{bad}' is not an integer"):
+            ros_env.ros_environment(base={**base, "ROS_DOMAIN_ID": bad})
+    assert ros_env.ros_environment(base={**base, "ROS_DOMAIN_ID": "abc"}, domain_id=3)["ROS_DOMAIN_ID"] == "3"
+    assert ros_env.ros_environment(base={**base, "ROS_DOMAIN_ID": ""})["ROS_DOMAIN_ID"] == ""
     # the ament index finds a package registered under a prefix listed in AMENT_PREFIX_PATH (the
     # editable install does not register vings_ros under sys.prefix: a prefix made here instead)
     prefix = tmp_path / "prefix"
@@ -509,8 +515,18 @@ def test_ros_environment(tmp_path, monkeypatch):
     assert Path(get_package_share_directory("vings_ros")) == prefix / "share" / "vings_ros"
 
 
-def test_cli_reports_bad_arguments_in_one_line(tmp_path, capsys, recording):
+def test_cli_reports_bad_arguments_in_one_line(tmp_path, capsys, recording, monkeypatch):
     from vings_ros.cli import main
+    from vings_ros.replay import Replayer
+    # a ROS environment rcl refuses: one line (it was an RCLError hidden behind an AttributeError
+    # from the teardown of the half-made set-up)
+    monkeypatch.setenv("ROS_DOMAIN_ID", "abc")
+    assert main(["replay", str(recording[0]), "--no-wait"]) == 2
+    err = capsys.readouterr().err
+    assert "ROS_DOMAIN_ID='abc'" in err and len(err.strip().splitlines()) == 1 and "Traceback" not in err
+    with pytest.raises(ConfigError, match="replay: cannot start ROS: .*ROS_DOMAIN_ID"):
+        Replayer(recording[1], ReplayOptions(wait_subscribers=False)).run()   # past the CLI's check
+    monkeypatch.delenv("ROS_DOMAIN_ID")
     assert main(["replay", str(recording[0]), "--start", "5", "--no-wait"]) == 2
     assert "no frames in the selected window" in capsys.readouterr().err
     (tmp_path / "afile").write_text("a file where the log's folder would be")
@@ -518,7 +534,7 @@ def test_cli_reports_bad_arguments_in_one_line(tmp_path, capsys, recording):
     err = capsys.readouterr().err
     assert "nope" in err and len(err.strip().splitlines()) == 1 and "Traceback" not in err
     assert main(["replay", str(tmp_path), "--rate", "-3"]) == 2
-    assert "--rate must be >= 0" in capsys.readouterr().err
+    assert "--rate must be a finite number >= 0" in capsys.readouterr().err
     assert main(["replay", str(tmp_path), "--topics", "image"]) == 2
     assert "key=/topic" in capsys.readouterr().err
     for args, msg in ((["--topics", "image=/1bad"], "absolute ROS name"),

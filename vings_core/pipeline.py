@@ -768,7 +768,12 @@ class SlamRunner:
         m.update(frames=n_frames, frames_tracked=len(traj), keyframes=len(kf_traj),
                  num_gaussians=int(self.mapper.num_gaussians))
         # with gt_poses the trajectory IS the ground truth: no ATE/RPE to report (null)
-        gt = None if self.cfg.gt_poses else self.source.gt_camera_trajectory()
+        gt = None
+        if not self.cfg.gt_poses:
+            try:
+                gt = self.source.gt_camera_trajectory()
+            except InputError as e:    # body ground truth without an extrinsic: no metric, say why
+                log.warning("trajectory evaluation skipped: %s", e)
         if gt is not None and len(traj) < 3:
             log.warning("trajectory evaluation skipped: %d tracked frame(s), at least 3 are needed", len(traj))
         elif gt is not None:

@@ -169,7 +169,9 @@ class Calibration:
     ``T_bc``: cam0-to-body 4x4. IMU noise in continuous time: ``gyro_noise_density`` rad/s/sqrt(Hz),
     ``gyro_random_walk`` rad/s^2/sqrt(Hz), ``accel_noise_density`` m/s^2/sqrt(Hz),
     ``accel_random_walk`` m/s^3/sqrt(Hz). ``imu_rate_hz`` is nominal; ``has_imu`` is False for
-    camera-only sources. ``gravity`` is the magnitude in m/s^2.
+    camera-only sources. ``gravity`` is the magnitude in m/s^2. ``T_bc_known`` is False when no
+    source of the calibration gave the extrinsic (``T_bc`` is then an identity placeholder: body
+    ground truth cannot be mapped to cam0 through it).
     """
 
     camera: Optional[CameraModel]
@@ -181,6 +183,7 @@ class Calibration:
     imu_rate_hz: float = 200.0
     has_imu: bool = False
     gravity: float = 9.81
+    T_bc_known: bool = True
 
     def __post_init__(self) -> None:
         self.T_bc = np.asarray(self.T_bc, dtype=np.float64).reshape(4, 4)
@@ -191,12 +194,12 @@ class Calibration:
                 "gyro_random_walk": self.gyro_random_walk,
                 "accel_noise_density": self.accel_noise_density,
                 "accel_random_walk": self.accel_random_walk, "imu_rate_hz": self.imu_rate_hz,
-                "has_imu": self.has_imu, "gravity": self.gravity}
+                "has_imu": self.has_imu, "gravity": self.gravity, "T_bc_known": self.T_bc_known}
 
     @staticmethod
     def from_dict(d: dict) -> "Calibration":
         kw = {k: d[k] for k in ("gyro_noise_density", "gyro_random_walk", "accel_noise_density",
-                                "accel_random_walk", "imu_rate_hz", "has_imu", "gravity") if k in d}
+                                "accel_random_walk", "imu_rate_hz", "has_imu", "gravity", "T_bc_known") if k in d}
         cam = d.get("camera")
         return Calibration(camera=CameraModel.from_dict(cam) if cam else None,
                            T_bc=np.asarray(d.get("T_bc", np.eye(4)), dtype=np.float64), **kw)

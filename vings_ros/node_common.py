@@ -252,10 +252,10 @@ def run_node(make_node: Callable[[], Any], args: Optional[list[str]] = None) -> 
     from .ros_env import apply_ros_environment
 
     logging.basicConfig(level=logging.INFO, format="[%(name)s] %(levelname)s %(message)s")
-    apply_ros_environment()
     argv = list(sys.argv if args is None else args)
     files = [argv[i + 1] for i, a in enumerate(argv[:-1]) if a == "--params-file"]
     try:
+        apply_ros_environment()
         for f in files:     # rcl parses them in init, with a traceback for a bad file
             read_params_file(f, strict=False)
         rclpy.init(args=argv, signal_handler_options=rclpy.signals.SignalHandlerOptions.NO)

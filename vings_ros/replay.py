@@ -85,7 +85,7 @@ class ReplayOptions:
 
     def validate(self) -> None:
         if not (self.rate >= 0 and math.isfinite(self.rate)):
-            raise ConfigError(f"--rate must be >= 0 (0 = as fast as possible), got {self.rate}")
+            raise ConfigError(f"--rate must be a finite number >= 0 (0 = as fast as possible), got {self.rate}")
         if not (self.start_s >= 0 and math.isfinite(self.start_s)):
             raise ConfigError(f"--start must be a finite number of seconds >= 0, got {self.start_s}")
         if self.duration_s is not None and not (self.duration_s > 0 and math.isfinite(self.duration_s)):
@@ -204,10 +204,14 @@ class Replayer:
         from std_msgs.msg import Header
 
         self._ctx = rclpy.Context()
-        # no rclpy signal handlers: Ctrl-C raises KeyboardInterrupt here and we clean up
-        rclpy.init(context=self._ctx, signal_handler_options=SignalHandlerOptions.NO)
-        self.node = rclpy.create_node(self.opt.node_name, context=self._ctx,
-                                      start_parameter_services=False)
+        try:
+            # no rclpy signal handlers: Ctrl-C raises KeyboardInterrupt here and we clean up
+            rclpy.init(context=self._ctx, signal_handler_options=SignalHandlerOptions.NO)
+            self.node = rclpy.create_node(self.opt.node_name, context=self._ctx,
+                                          start_parameter_services=False)
+        except RuntimeError as e:      # rclpy's RCLError (environment, DDS set-up): one line
+            why = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+            raise ConfigError(f"replay: cannot start ROS: {why}") from None
         self.executor = SingleThreadedExecutor(context=self._ctx)
         self.executor.add_node(self.node)
         tp = self.opt.topics
@@ -242,9 +246,11 @@ class Replayer:
         except Exception as e:  # pragma: no cover - best effort on shutdown
             log.debug("wait_for_all_acked failed: %s", e)
         finally:
-            try:
-                self.executor.shutdown(timeout_sec=1.0)
-                self.node.destroy_node()
+            try:    # a set-up that failed half-way has no executor or node
+                if getattr(self, "executor", None) is not None:
+                    self.executor.shutdown(timeout_sec=1.0)
+                if getattr(self, "node", None) is not None:
+                    self.node.destroy_node()
             finally:
                 if ctx.ok():
                     ctx.try_shutdown()

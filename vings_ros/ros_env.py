@@ -113,6 +113,12 @@ def ros_environment(domain_id: Optional[int] = None, use_shm: Optional[bool] = N
         if not 0 <= d <= 232:
             raise ConfigError(f"ROS_DOMAIN_ID {d} is outside 0..232")
         env["ROS_DOMAIN_ID"] = str(d)
+    elif env.get("ROS_DOMAIN_ID", "").strip():
+        # an inherited value rcl cannot use fails deep inside rclpy.init(): say it here
+        v = env["ROS_DOMAIN_ID"].strip()
+        if not (v.isdigit() and 0 <= int(v) <= 232):
+            raise ConfigError(f"environment variable ROS_DOMAIN_ID={env['ROS_DOMAIN_ID']!r} is not an "
+                              f"integer in 0..232 (unset it or give --domain-id)")
     if log_dir is not None:
         env["ROS_LOG_DIR"] = str(log_dir)
     elif not env.get("ROS_LOG_DIR"):

@@ -31,7 +31,7 @@ import torch
 import torch.nn as nn
 
 from ..errors import InputError
-from .image import to_float_image
+from .image import _metric_pair
 
 # (slice number, layer index in torchvision's `features`, in, out, kernel, stride, padding);
 # ("pool", kernel, stride) entries are max-pools. Every conv is followed by a ReLU.
@@ -134,9 +134,8 @@ class LPIPS(nn.Module):
     @torch.no_grad()
     def distance(self, a: Union[np.ndarray, torch.Tensor], b: Union[np.ndarray, torch.Tensor]) -> float:
         """LPIPS between two ``(H, W, 3)`` (or mono ``(H, W)``) images in [0, 1] (uint8 accepted)."""
-        ta, tb = to_float_image(a, "first image"), to_float_image(b, "second image")
-        if ta.shape != tb.shape:
-            raise InputError(f"images differ in shape: {tuple(ta.shape)} vs {tuple(tb.shape)}")
+        # same checks as psnr/ssim: equal shapes, finite, in [0, 1] (0..255 floats are refused)
+        ta, tb, _ = _metric_pair(a, b, None)
         if ta.shape[-1] == 1:
             ta, tb = ta.expand(-1, -1, 3), tb.expand(-1, -1, 3)
         dt = self.lin0.model[1].weight.dtype

@@ -73,6 +73,8 @@ def _clean(v: Any, where: str) -> Any:
         return f if math.isfinite(f) else None
     if isinstance(v, dict):
         return {str(k): _clean(x, f"{where}.{k}") for k, x in v.items()}
+    if isinstance(v, np.ndarray) and v.ndim == 0:
+        return _clean(v.item(), where)
     if isinstance(v, (list, tuple, np.ndarray)):
         return [_clean(x, f"{where}[]") for x in (v.tolist() if isinstance(v, np.ndarray) else v)]
     if hasattr(v, "item") and callable(v.item):  # torch scalar

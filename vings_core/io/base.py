@@ -14,6 +14,7 @@ from typing import Iterator, Optional, Union
 
 import numpy as np
 
+from ..errors import InputError
 from ..types import Calibration, Frame, ImuSample, Trajectory
 
 
@@ -81,11 +82,18 @@ class Source(ABC):
         return None
 
     def gt_camera_trajectory(self) -> Optional[Trajectory]:
-        """Ground truth as cam0 ``T_wc`` (body ground truth right-multiplied by ``T_bc``)."""
+        """Ground truth as cam0 ``T_wc`` (body ground truth right-multiplied by ``T_bc``).
+
+        Raises ``InputError`` when the ground truth is of the body but no extrinsic ``T_bc`` is
+        known (an identity placeholder would put the lever arm into every metric)."""
         if self.ground_truth is None:
             return None
         if self.gt_frame == "camera":
             return self.ground_truth
+        if not self.calibration.T_bc_known:
+            raise InputError(f"{self.path}: the ground truth is of the body (IMU) frame, but the recording "
+                             f"gives no camera-to-body extrinsic T_bc to map it to cam0; give one with "
+                             f"--calib FILE (or, for 'vings eval', --gt-frame camera if it holds camera poses)")
         return self.ground_truth.right_multiply(self.calibration.T_bc)
 
     def stream(self) -> Iterator[Union[Frame, ImuSample]]:

@@ -73,7 +73,8 @@ class CalibParts:
             kw["has_imu"] = bool(self.has_imu)
         if self.gravity is not None:
             kw["gravity"] = float(self.gravity)
-        return Calibration(camera=cam, T_bc=self.T_bc if self.T_bc is not None else np.eye(4), **kw)
+        return Calibration(camera=cam, T_bc=self.T_bc if self.T_bc is not None else np.eye(4),
+                           T_bc_known=self.T_bc is not None, **kw)
 
 
 def distortion_model_name(name: str, where: str) -> str:

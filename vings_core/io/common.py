@@ -146,18 +146,8 @@ def check_size(raw: CameraModel, actual_w: int, actual_h: int, where: str,
 
 
 def calibration_dict(c: Optional[Calibration]) -> Optional[dict]:
-    """``Calibration.to_dict()`` that also accepts ``camera=None`` (camera-less recordings)."""
-    if c is None:
-        return None
-    if c.camera is not None:
-        return c.to_dict()
-    fake = Calibration(camera=CameraModel(1, 1, 1.0, 1.0, 0.0, 0.0), T_bc=c.T_bc,
-                       gyro_noise_density=c.gyro_noise_density, gyro_random_walk=c.gyro_random_walk,
-                       accel_noise_density=c.accel_noise_density, accel_random_walk=c.accel_random_walk,
-                       imu_rate_hz=c.imu_rate_hz, has_imu=c.has_imu, gravity=c.gravity)
-    d = fake.to_dict()
-    d["camera"] = None
-    return d
+    """``Calibration.to_dict()``, None for no calibration (``camera`` is None when camera-less)."""
+    return None if c is None else c.to_dict()
 
 
 class LoaderSource(Source):
@@ -254,7 +244,7 @@ class LoaderSource(Source):
             return self.ground_truth
         if self.calibration is None:
             return None
-        return self.ground_truth.right_multiply(self.calibration.T_bc)
+        return super().gt_camera_trajectory()
 
     def info(self) -> dict:
         if self.calibration is not None and self.calibration.camera is not None:

@@ -34,6 +34,9 @@ _ENCODINGS: dict[str, tuple[int, str, str]] = {
 SUPPORTED_ENCODINGS = tuple(_ENCODINGS)
 
 
+_BAYER_8 = ("bayer_rggb8", "bayer_bggr8", "bayer_gbrg8", "bayer_grbg8")
+
+
 def _bayer_code(encoding: str) -> int:
     import cv2
     # ROS names the top-left 2x2 pattern; OpenCV names the pattern starting at pixel (1, 1).
@@ -142,6 +145,14 @@ def decode_compressed(data: Union[bytes, bytearray, memoryview, np.ndarray], fmt
     if img is None:
         raise InputError(f"{where}: corrupt compressed image: OpenCV could not decode "
                          f"{buf.size} bytes (format {fmt!r})")
+    # compressed_image_transport compresses a Bayer image as the raw mosaic ("bayer_rggb8; png
+    # compressed "): demosaic it, as decode_image does for a raw Image
+    source_enc = fmt.split(";")[0].strip().lower() if ";" in fmt else ""
+    if source_enc.startswith("bayer_") and source_enc[:10] + "8" in _BAYER_8:
+        if img.ndim != 2 or img.shape[0] % 2 or img.shape[1] % 2:
+            raise InputError(f"{where}: a {source_enc} compressed image must decode to one channel of "
+                             f"even width and height, got shape {img.shape} (format {fmt!r})")
+        return cv2.cvtColor(img, _bayer_code(source_enc[:10] + "8"))
     return bgr_to_rgb(img)
 
 
