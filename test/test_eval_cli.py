@@ -146,9 +146,21 @@ def test_cli_dataset_body_ground_truth_needs_a_known_extrinsic(capsys, tmp_path)
     assert r["gt_frame"] == "body" and r["ate_se3_m"] < 1e-6
 
 
-def open_source_gt(root):
-    from vings_core.io import open_source
-    return open_source(root).ground_truth
+def test_cli_bag_ground_truth_takes_the_source_topic_options(capsys, tmp_path):
+    """The bag reader's own errors point at --imu-topic / --camera-info-topic: eval has them."""
+    from fixtures_io import BagSpec, make_bag
+    bag = make_bag(tmp_path / "two.mcap", BagSpec(imu_topics=("/imu0", "/imu1"), gt_topic="/gt", n_images=6))
+    write_tum(tmp_path / "est.tum", open_source_gt(bag, imu_topic="/imu0", gt_topic="/gt"))
+    assert "choose one with --imu-topic" in run_err(
+        capsys, ["eval", str(tmp_path / "est.tum"), "--gt", str(bag), "--gt-topic", "/gt", "--gt-frame", "camera"])
+    r = run_json(capsys, ["eval", str(tmp_path / "est.tum"), "--gt", str(bag), "--gt-topic", "/gt",
+                          "--gt-frame", "camera", "--imu-topic", "/imu0", "--camera-info-topic", "/cam0/camera_info"])
+    assert r["ate_se3_m"] < 1e-9 and r["gt_frame"] == "camera"
+
+
+def open_source_gt(root, **options):
+    from vings_core.io import SourceOptions, open_source
+    return open_source(root, SourceOptions(**options)).ground_truth
 
 
 def test_cli_run_folder_write_metrics(capsys, trajs):

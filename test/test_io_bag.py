@@ -338,6 +338,24 @@ def test_missing_and_unreadable_bags(tmp_path):
         open_source(tmp_path / "junk.mcap")
 
 
+def test_mcap_with_a_non_ros_channel_names_it(tmp_path):
+    """rosbags cannot open an MCAP that also holds e.g. a JSON channel (Foxglove annotations); the
+    error used to be "cannot open MCAP file: 'jsonschema'"."""
+    import json
+
+    from mcap.writer import Writer
+    with open(tmp_path / "mixed.mcap", "wb") as fh:
+        w = Writer(fh)
+        w.start()
+        sid = w.register_schema(name="note", encoding="jsonschema", data=b"{}")
+        cid = w.register_channel(topic="/notes", message_encoding="json", schema_id=sid)
+        w.add_message(channel_id=cid, log_time=T0, publish_time=T0, data=json.dumps({"i": 0}).encode())
+        w.finish()
+    with pytest.raises(InputError, match=r"mixed.mcap: cannot open MCAP file: it has channels that are not "
+                                         r"ROS messages \('/notes' \(json\)\).*mcap filter"):
+        open_source(tmp_path / "mixed.mcap")
+
+
 def test_frames_are_streamed_not_held(tmp_path):
     """frames() re-reads the bag: the source keeps no decoded images between iterations."""
     p = make_bag(tmp_path / "s", BagSpec(n_images=6, imu_topics=()), "mcap")

@@ -370,6 +370,34 @@ def test_sigterm_stops_a_looping_replay_cleanly(recording, ros, listener_factory
     assert sorted(ros_env.cleanup_fastdds_shm(names=left, min_age_s=0.0)) == sorted(left)
 
 
+def test_loop_shift_keeps_every_stamp_increasing_across_passes(recording, ros, listener_factory):
+    """With --loop-shift pass k is pass 0 shifted by k x (span + one frame period): images, IMU and
+    /clock keep increasing, so a front end that drops non-increasing stamps sees every pass."""
+    root, src, frames, imu = recording
+    lis = listener_factory(ack=True)
+    proc = start_replay(ros, root, "--rate", "0", "--loop", "--loop-shift", "--wait-for-graph",
+                        "--startup-timeout", "30")
+    t_end = time.monotonic() + PROC_TIMEOUT_S
+    while len(lis.images) < 2 * N_FRAMES + 1 and time.monotonic() < t_end and proc.poll() is None:
+        lis.ex.spin_once(timeout_sec=0.02)
+    proc.send_signal(signal.SIGTERM)
+    out, err = lis.spin_while(proc, linger=0.0)
+    assert proc.returncode == 0, err
+    img = [ma.header_ns(m.header) for m in lis.images]
+    assert len(img) > 2 * N_FRAMES, err
+    first = [f.stamp_ns for f in frames]
+    period = int(np.median(np.diff(first)))
+    shift = first[-1] - (first[0] - 1_000_000_000) + period     # span from the IMU lead (1 s)
+    assert img[:N_FRAMES] == first
+    assert img[N_FRAMES:2 * N_FRAMES] == [s + shift for s in first]
+    assert all(b > a for a, b in zip(img, img[1:]))
+    imu_st = [ma.header_ns(m.header) for m in lis.imu]
+    assert all(b > a for a, b in zip(imu_st, imu_st[1:])) and imu_st[-1] > first[-1]
+    clk = [m.clock.sec * 10**9 + m.clock.nanosec for m in lis.clock]
+    assert all(b > a for a, b in zip(clk, clk[1:]))
+    lis.close()
+
+
 def test_cleanup_removes_only_dead_processes_files(ros, listener_factory):
     """kill -9 leaves segments/ports behind; the cleanup removes those and leaves a live
     participant's (this process's listener) alone; once the listener has closed too, nothing of
@@ -437,7 +465,8 @@ def test_topics_and_options_validation():
         parse_topics("image")
     for kw, pat in (({"rate": -1.0}, "--rate"), ({"topics": {"camera": "/x"}}, "unknown key"),
                     ({"topics": {"image": "relative"}}, "absolute"), ({"duration_s": 0.0}, "--duration"),
-                    ({"start_s": -2.0}, "--start"), ({"imu_lead_s": -1.0}, "--imu-lead")):
+                    ({"start_s": -2.0}, "--start"), ({"imu_lead_s": -1.0}, "--imu-lead"),
+                    ({"loop_shift": True}, "--loop-shift needs --loop"), ({"rate": float("inf")}, "finite")):
         with pytest.raises(ConfigError, match=pat):
             ReplayOptions(**kw).validate()
     # the publish log is checked before the replay (a folder, a place nothing can be written)

@@ -237,3 +237,58 @@ def test_node_with_a_params_file_rcl_cannot_parse_exits_with_one_line(tmp_path):
                        env=env, cwd=REPO, capture_output=True, text=True, timeout=120)
     assert r.returncode == 2, r.stderr
     assert "mixed.yaml: mapping.background" in r.stderr and "Traceback" not in r.stderr, r.stderr
+
+
+RECORDER_SCRIPT = """
+import errno, json, sys
+from pathlib import Path
+import rclpy
+from rclpy.serialization import serialize_message
+from nav_msgs.msg import Odometry
+from msg_adapters import topics as T
+rclpy.init(args=["x"])
+from vings_ros.recorder import RecorderNode
+out = Path(sys.argv[1])
+res = {}
+node = RecorderNode(str(out / "a.mcap"))
+conn = next(c for c in node.writer.connections if c.topic == T.ODOMETRY_TOPIC)
+for i in range(5):
+    m = Odometry()
+    m.header.stamp.sec = i + 1
+    node._write(conn, T.ODOMETRY_TOPIC, serialize_message(m))
+node.shutdown()
+res["files"] = sorted(p.name for p in out.iterdir())
+from mcap.reader import make_reader
+with open(out / "a.mcap", "rb") as f:
+    res["read_back"] = [(ch.topic, msg.log_time > 0) for _, ch, msg in make_reader(f).iter_messages()]
+node.destroy_node()
+# a write that fails (disk full): the node stops with one error naming the target, nothing raised
+node = RecorderNode(str(out / "b.mcap"))
+conn = next(c for c in node.writer.connections if c.topic == T.ODOMETRY_TOPIC)
+def full(*a, **k):
+    raise OSError(errno.ENOSPC, "No space left on device")
+node.writer.write = full
+node._write(conn, T.ODOMETRY_TOPIC, serialize_message(Odometry()))
+res["error"] = str(node.error)
+# ... and a close that fails keeps the partial file where the error says
+def close_fails():
+    raise OSError(errno.ENOSPC, "No space left on device")
+node.writer.close = close_fails
+try:
+    node.shutdown()
+    res["shutdown"] = None
+except Exception as e:
+    res["shutdown"] = type(e).__name__ + ": " + str(e)
+node.destroy_node(); rclpy.shutdown()
+print("RESULT " + json.dumps(res))
+"""
+
+
+def test_recorder_writes_atomically_and_reports_write_errors_in_one_line(tmp_path):
+    res = _run(RECORDER_SCRIPT, str(tmp_path))
+    assert res["files"] == ["a.mcap"], res        # the temporary bag folder is gone
+    assert res["read_back"] == [["/vings/odometry", True]] * 5
+    assert "b.mcap: cannot write the recording (No space left on device)" in res["error"]
+    assert "what was written so far is in" in res["error"]
+    assert res["shutdown"].startswith("VingsError: ") and "partial file stays at" in res["shutdown"]
+    assert not (tmp_path / "b.mcap").exists()

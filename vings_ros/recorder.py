@@ -17,6 +17,8 @@ from typing import Optional
 from rclpy.node import Node
 
 from msg_adapters import topics as T
+from vings_core.errors import VingsError
+from vings_core.util import fsync_path
 
 from .node_common import run_node
 
@@ -77,17 +79,32 @@ class RecorderNode(Node):
     def _write(self, conn, topic: str, data: bytes) -> None:
         stamp = self.get_clock().now().nanoseconds
         with self.lock:
-            self.writer.write(conn, stamp, data)
+            if self.error is not None:
+                return
+            try:
+                self.writer.write(conn, stamp, data)
+            except OSError as e:      # disk full, file size limit, folder gone: stop, say where
+                self.error = VingsError(f"{self.out}: cannot write the recording ({e.strerror or e}); "
+                                        f"what was written so far is in {self.bagdir}")
+                return
             self.counts[topic] = self.counts.get(topic, 0) + 1
 
     def shutdown(self) -> None:
+        part = self.bagdir / f"{self.bagdir.name}.mcap"
         with self.lock:
-            self.writer.close()
+            try:
+                self.writer.close()
+            except OSError as e:
+                # the file lacks its summary: `mcap recover` (the MCAP CLI) rebuilds one
+                raise VingsError(f"{self.out}: cannot finish the recording ({e.strerror or e}); the "
+                                 f"partial file stays at {part} (`mcap recover` can repair it)") from None
         if self.out.exists():   # appeared while recording: keep both, never overwrite
             self.get_logger().error(f"{self.out} appeared while recording; the recording stays in "
                                     f"{self.bagdir}")
             return
-        os.replace(self.bagdir / f"{self.bagdir.name}.mcap", self.out)
+        fsync_path(part)          # the data is on disk before the name points at it
+        os.replace(part, self.out)
+        fsync_path(self.out.parent)
         shutil.rmtree(self.tmpdir, ignore_errors=True)
         total = sum(self.counts.values())
         self.get_logger().info(f"recorded {total} messages on {len(self.counts)} topics to {self.out}")

@@ -35,6 +35,7 @@ One node, one :class:`SingleThreadedExecutor`, all in the calling thread.
 """
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 import re
@@ -73,6 +74,7 @@ class ReplayOptions:
     startup_timeout_s: float = 30.0
     ack_timeout_s: float = 60.0
     loop: bool = False
+    loop_shift: bool = False    # with loop: every pass's stamps come after the previous pass's
     start_s: float = 0.0
     duration_s: Optional[float] = None
     imu_lead_s: float = 1.0
@@ -84,6 +86,8 @@ class ReplayOptions:
     publish_log: Optional[str] = None  # CSV "stamp_ns,wall_ns" of every image (for latency)
 
     def validate(self) -> None:
+        if self.loop_shift and not self.loop:
+            raise ConfigError("--loop-shift needs --loop")
         if not (self.rate >= 0 and math.isfinite(self.rate)):
             raise ConfigError(f"--rate must be a finite number >= 0 (0 = as fast as possible), got {self.rate}")
         if not (self.start_s >= 0 and math.isfinite(self.start_s)):
@@ -387,6 +391,10 @@ class Replayer:
         self._f_first, self._f_last = int(sel[0]), int(sel[-1])
         self._imu_first = self._f_first - int(round(self.opt.imu_lead_s * 1e9))
         self._n_frames = int(len(sel))
+        # --loop-shift: pass k is published k * shift later, so stamps keep increasing (a graph
+        # that drops stamps that do not increase, as the VINGS front end does, sees every pass)
+        period = int(np.median(np.diff(sel))) if len(sel) > 1 else 50_000_000
+        self._loop_shift_ns = (self._f_last - min(self._imu_first, self._f_first)) + max(period, 1)
 
     def _play_once(self, wall0: float) -> None:
         rate = self.opt.rate
@@ -398,6 +406,7 @@ class Replayer:
         self._sensor_ns_pass = 0
         n_img_pass = 0
         pass_first: Optional[int] = None
+        shift = self.stats.loops * self._loop_shift_ns if self.opt.loop_shift else 0
         for item in self.source.stream():
             stamp = int(item.stamp_ns)
             is_frame = isinstance(item, Frame)
@@ -405,6 +414,9 @@ class Replayer:
                 break
             if stamp < (self._f_first if is_frame else self._imu_first):
                 continue
+            if shift:
+                stamp += shift
+                item = dataclasses.replace(item, stamp_ns=stamp)
             if rate > 0:
                 if anchor is None:
                     anchor = (time.monotonic(), stamp)
@@ -436,7 +448,7 @@ class Replayer:
             if now >= next_progress:
                 next_progress = now + self.opt.progress_period_s
                 self._print(f"replay: {n_img_pass}/{total} images (loop {self.stats.loops + 1}), "
-                            f"{self.stats.imu} imu, t = {(stamp - self._f_first) * 1e-9:.2f} s, "
+                            f"{self.stats.imu} imu, t = {(stamp - shift - self._f_first) * 1e-9:.2f} s, "
                             f"wall {now - wall0:.1f} s")
         self._sensor_ns += self._sensor_ns_pass
         self._sensor_ns_pass = 0

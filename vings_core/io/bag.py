@@ -127,6 +127,28 @@ def pose_of(msg, msgtype: str) -> np.ndarray:
 REORDER_WINDOW = 256
 
 
+
+def _non_ros_mcap_channels(path: Path) -> list[str]:
+    """``'topic' (encoding)`` of the channels of an MCAP file (or of the ``.mcap`` files of a
+    rosbag2 folder) whose messages are not ROS 1/ROS 2 encoded (JSON, protobuf, ...): rosbags
+    cannot open a file holding any. Empty when there are none or the file cannot be read."""
+    files = [path] if path.is_file() else sorted(path.glob("*.mcap")) if path.is_dir() else []
+    out = []
+    for f in files:
+        if f.suffix != ".mcap":
+            continue
+        try:
+            from mcap.reader import make_reader
+            with open(f, "rb") as fh:
+                summary = make_reader(fh).get_summary()
+        except Exception:  # noqa: BLE001 - only a better message is at stake
+            continue
+        if summary is None:
+            continue
+        out += [f"{c.topic!r} ({c.message_encoding})" for c in summary.channels.values()
+                if c.message_encoding not in ("cdr", "ros1")]
+    return out
+
 class BagSource(LoaderSource):
     """ROS 1 ``.bag``, ROS 2 bag folder (``metadata.yaml``), ``.db3`` or plain ``.mcap`` (module doc)."""
 
@@ -175,6 +197,12 @@ class BagSource(LoaderSource):
             r = AnyReader([self.path], default_typestore=store)
             r.open()
         except Exception as e:  # noqa: BLE001 - rosbags raises many kinds; report them uniformly
+            foreign = _non_ros_mcap_channels(self.path)
+            if foreign:
+                raise InputError(f"{self.path}: cannot open {self.format}: it has channels that are not "
+                                 f"ROS messages ({', '.join(foreign)}); VINGS reads ROS 1/ROS 2 messages "
+                                 f"only: drop those channels, e.g. `mcap filter -n '<their topics>'`"
+                                 ) from None
             first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
             raise InputError(f"{self.path}: cannot open {self.format}: {first}") from None
         try:

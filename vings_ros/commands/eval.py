@@ -37,6 +37,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                    "it overrides the calibration the source carries)")
     p.add_argument("--image-topic", help="bag/MCAP image topic (datasets only)")
     p.add_argument("--gt-topic", help="bag/MCAP ground-truth topic (datasets only)")
+    p.add_argument("--imu-topic", help="bag/MCAP IMU topic, when it has several (datasets only)")
+    p.add_argument("--camera-info-topic", help="bag/MCAP CameraInfo topic (datasets only)")
     p.add_argument("--max-dt-ms", type=float, default=10.0,
                    help="max time offset (ms) between an estimate stamp and ground truth (default 10)")
     p.add_argument("--no-interpolate", action="store_true",
@@ -83,7 +85,8 @@ def _t_bc_from_calib(path: str):
 
 
 def load_ground_truth(gt_arg: str, gt_frame: Optional[str] = None, calib: Optional[str] = None,
-                      image_topic: Optional[str] = None, gt_topic: Optional[str] = None):
+                      image_topic: Optional[str] = None, gt_topic: Optional[str] = None,
+                      imu_topic: Optional[str] = None, camera_info_topic: Optional[str] = None):
     """Ground truth as cam0 ``T_wc``: returns ``(Trajectory, info dict)``."""
     from vings_core.trajectory_io import read_tum
 
@@ -113,7 +116,8 @@ def load_ground_truth(gt_arg: str, gt_frame: Optional[str] = None, calib: Option
     except ImportError as e:
         raise InputError(f"{p}: reading ground truth from a dataset needs vings_core.io.open_source "
                          f"({e})") from None
-    src = open_source(str(p), SourceOptions(image_topic=image_topic, gt_topic=gt_topic, calib_file=calib))
+    src = open_source(str(p), SourceOptions(image_topic=image_topic, gt_topic=gt_topic, calib_file=calib,
+                                            imu_topic=imu_topic, camera_info_topic=camera_info_topic))
     if src.ground_truth is None or len(src.ground_truth) == 0:
         raise InputError(f"{p}: dataset has no ground truth")
     if gt_frame is not None:
@@ -145,7 +149,8 @@ def eval_trajectory_cli(args: argparse.Namespace) -> dict:
         raise InputError(f"--max-dt-ms must be in [0, 1e9] ms, got {args.max_dt_ms}")
     est_path, run_dir = _resolve_estimate(args.estimate)
     est = read_tum(est_path)
-    gt, info = load_ground_truth(args.gt, args.gt_frame, args.calib, args.image_topic, args.gt_topic)
+    gt, info = load_ground_truth(args.gt, args.gt_frame, args.calib, args.image_topic, args.gt_topic,
+                                 args.imu_topic, args.camera_info_topic)
     res = evaluate_trajectory(est, gt, max_dt_ns=int(round(args.max_dt_ms * 1e6)),
                               rpe_lengths_m=_parse_lengths(args.rpe_lengths),
                               interpolate=not args.no_interpolate,

@@ -33,6 +33,9 @@ def register(subparsers) -> None:
                    help="start publishing at once, without waiting for subscribers")
     p.add_argument("--loop", action="store_true",
                    help="start again at the end (original stamps: /clock jumps back); stop with Ctrl-C")
+    p.add_argument("--loop-shift", action="store_true",
+                   help="with --loop: shift every pass's stamps past the previous pass's, so a graph "
+                   "that drops stamps that do not increase (the VINGS front end) processes every pass")
     p.add_argument("--start", type=float, default=0.0, metavar="S",
                    help="skip the frames of the first S seconds (from the first frame)")
     p.add_argument("--duration", type=float, default=None, metavar="D",
@@ -67,7 +70,7 @@ def run(args: argparse.Namespace) -> int:
     opts = ReplayOptions(rate=args.rate, topics=parse_topics(args.topics),
                          wait_for_graph=args.wait_for_graph, wait_subscribers=not args.no_wait,
                          startup_timeout_s=args.startup_timeout, ack_timeout_s=args.ack_timeout,
-                         loop=args.loop, start_s=args.start, duration_s=args.duration,
+                         loop=args.loop, loop_shift=args.loop_shift, start_s=args.start, duration_s=args.duration,
                          imu_lead_s=args.imu_lead,
                          publish_clock=not args.no_clock, publish_log=args.publish_log)
     if args.camera_frame:
