@@ -140,9 +140,8 @@ def msg_to_float_image(msg: Image, where: str = "image", allow_mm_depth: bool = 
         ok = "32FC1, 64FC1 or 16UC1 (mm)" if allow_mm_depth else "32FC1 or 64FC1"
         raise InputError(f"{where}: encoding {enc!r} is not supported here; expected {ok}")
     out = _decode(msg, where).astype(np.float32)
-    scale = FLOAT_ENCODINGS[enc]
-    if scale != 1.0:
-        out *= np.float32(scale)
+    if enc == "16UC1":
+        out /= np.float32(1000.0)    # exact mm -> m (x 1e-3 gave 1500 mm -> 1.5000001 m)
     return out
 
 

@@ -54,7 +54,12 @@ def points_to_pointcloud2(xyz: Any, rgb: Optional[Any] = None, stamp_ns: int = 0
         c = _as_numpy(rgb)
         if c.shape != (n, 3):
             raise InputError(f"{where}: colours must be ({n}, 3) like the positions, got {c.shape}")
-        if c.dtype != np.uint8:
+        if c.dtype.kind in "iu" and c.dtype != np.uint8:     # integer colours are 0..255 already
+            if c.size and (c.min() < 0 or c.max() > 255):
+                raise InputError(f"{where}: integer colours must lie in 0..255, got "
+                                 f"[{c.min()}, {c.max()}]")
+            c = c.astype(np.uint8)
+        elif c.dtype != np.uint8:                            # floats in [0, 1]
             c = np.clip(np.rint(c.astype(np.float32) * 255.0), 0, 255).astype(np.uint8)
         fields.append(PointField(name="rgb", offset=12, datatype=PointField.FLOAT32, count=1))
         names.append("rgb")

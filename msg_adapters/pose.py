@@ -49,6 +49,11 @@ def _check_pose(T: np.ndarray, where: str) -> np.ndarray:
     T = np.asarray(T, dtype=np.float64)
     if T.shape != (4, 4) or not np.all(np.isfinite(T)):
         raise InputError(f"{where}: pose must be a finite 4x4 matrix, got shape {T.shape}")
+    R = T[:3, :3]
+    if np.abs(R.T @ R - np.eye(3)).max() > 1e-4 or np.linalg.det(R) < 0:
+        # a scaled matrix or a reflection has no quaternion: it would be published as another rotation
+        raise InputError(f"{where}: the rotation block is not a rotation (R^T R - I up to "
+                         f"{np.abs(R.T @ R - np.eye(3)).max():.2g}, det {np.linalg.det(R):.3g})")
     return T
 
 

@@ -5,6 +5,7 @@ every stamp (no float rounding), including negative ones.
 """
 from __future__ import annotations
 
+import numpy as np
 from builtin_interfaces.msg import Time
 from std_msgs.msg import Header
 
@@ -17,11 +18,11 @@ _INT32_MIN, _INT32_MAX = -(2 ** 31), 2 ** 31 - 1
 
 def ns_to_time(stamp_ns: int, where: str = "stamp") -> Time:
     """``int`` nanoseconds -> ``builtin_interfaces/Time`` (exact)."""
-    try:
-        ns = int(stamp_ns)
-    except (TypeError, ValueError):
+    if isinstance(stamp_ns, bool) or not isinstance(stamp_ns, (int, np.integer)):
+        # a float would be taken at face value: 1.7e9 (seconds) as 1.7 s of nanoseconds
         raise InputError(f"{where}: stamp must be an integer number of nanoseconds, "
-                         f"got {stamp_ns!r}") from None
+                         f"got {stamp_ns!r}")
+    ns = int(stamp_ns)
     sec, nanosec = divmod(ns, NS_PER_S)
     if not _INT32_MIN <= sec <= _INT32_MAX:
         raise InputError(f"{where}: stamp {ns} ns does not fit builtin_interfaces/Time "

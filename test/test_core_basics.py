@@ -214,6 +214,10 @@ def test_vings_run_checks_the_params_file_before_any_work(tmp_path, capsys):
     err = capsys.readouterr()
     assert rc != 0 and "unknown parameter 'queue_sise'" in err.out + err.err
     assert not (tmp_path / "o").exists()
+    # an empty --out wrote the outputs into the current folder
+    for out in ("", "  "):
+        assert main(["run", str(tmp_path / "no_such_source"), "--out", out]) == 2
+        assert "--out: give an output folder" in capsys.readouterr().err
 
 
 def test_se3_exp_gradient_finite_at_zero():

@@ -50,6 +50,10 @@ def test_stamp_out_of_range_names_field():
         ma.ns_to_time(2 ** 31 * 1_000_000_000, "/camera/image_raw")
     with pytest.raises(InputError, match="nanoseconds"):
         ma.ns_to_time("soon")
+    # a float (seconds by mistake) is refused, not taken as 1.7 s of nanoseconds
+    with pytest.raises(InputError, match="integer number of nanoseconds, got 1700000000.0"):
+        ma.ns_to_time(1.7e9)
+    assert ma.ns_to_time(np.int64(5)).nanosec == 5
 
 
 # --------------------------------------------------------------------------------------- images
@@ -153,7 +157,9 @@ def test_depth_16uc1_millimetres_rep118():
     mm = np.array([[0, 1000, 2500], [65535, 1, 42]], np.uint16)
     msg = _raw_msg(mm.astype("<u2").view(np.uint8), "16UC1", 3, 2, 6)
     d = ma.msg_to_depth(msg)
-    np.testing.assert_allclose(d, mm.astype(np.float32) / 1000.0, rtol=1e-6)
+    # exactly the float32 nearest to mm / 1000 (x 1e-3 gave 1500 mm -> 1.5000001 m)
+    np.testing.assert_array_equal(d, mm.astype(np.float32) / np.float32(1000.0))
+    assert ma.msg_to_depth(_raw_msg(np.array([1500], "<u2").view(np.uint8), "16UC1", 1, 1, 2))[0, 0] == np.float32(1.5)
     with pytest.raises(InputError, match="16UC1"):
         ma.msg_to_float_image(msg, "/vings/keyframe/depth")
     neg = ma.float_image_to_msg(np.array([[-1.0, np.inf, 2.0]], np.float32), 0, "c")
@@ -303,6 +309,11 @@ def test_bad_quaternion_raises():
     msg.pose.orientation.w = 0.0
     with pytest.raises(InputError, match=r"/vings/keyframe/pose.*unit quaternion"):
         ma.pose_stamped_to_matrix(msg, "/vings/keyframe/pose")
+    # a matrix whose rotation block is no rotation has no quaternion: refused, not published as
+    # another rotation (a reflection came out as the identity)
+    for bad in (np.diag([1.0, 1.0, -1.0, 1.0]), np.diag([2.0, 2.0, 2.0, 1.0])):
+        with pytest.raises(InputError, match="odom: the rotation block is not a rotation"):
+            ma.matrix_to_pose_stamped(bad, 1, "map", "odom")
 
 
 def test_odometry_round_trip_and_frames():
@@ -387,6 +398,11 @@ def test_pointcloud2_round_trip_with_colour():
     # float colours in [0, 1]
     _, c = ma.pointcloud2_to_points(ma.points_to_pointcloud2(xyz, rgb / 255.0))
     np.testing.assert_array_equal(c, rgb)
+    # integer colours of another dtype are 0..255 already (they all came out 255)
+    _, c = ma.pointcloud2_to_points(ma.points_to_pointcloud2(xyz, rgb.astype(np.int64)))
+    np.testing.assert_array_equal(c, rgb)
+    with pytest.raises(InputError, match=r"integer colours must lie in 0..255, got \[0, 300\]"):
+        ma.points_to_pointcloud2(xyz[:2], np.array([[0, 1, 2], [3, 4, 300]]))
 
 
 def test_pointcloud2_foreign_layout():

@@ -115,10 +115,106 @@ def test_lenient_reading_keeps_what_rclpy_and_other_nodes_own(tmp_path):
     p.write_text("/**:\n  ros__parameters:\n    use_sim_time: true\n    ros:\n      shutdown_timeout_s: 30.0\n"
                  "    qos_overrides:\n      /clock:\n        subscription:\n          depth: 5\n"
                  "other_node:\n  ros__parameters:\n    gain: [1.0, 2.0]\n")
-    with pytest.raises(ConfigError, match="unknown parameter section"):
-        read_params_file(p)                                  # `vings run --params`: strict
+    # `vings run --params` reads the same file as the nodes: rclpy's keys and blocks for other
+    # nodes are not VINGS sections (it refused them, so a file that ran the nodes failed there)
+    assert read_params_file(p) == read_params_file(p, strict=False) == {"ros": {"shutdown_timeout_s": 30.0}}
+    p.write_text(p.read_text() + "mapper_node:\n  ros__parameters:\n    mappping: {window_size: 4}\n")
+    with pytest.raises(ConfigError, match="unknown parameter section.*'mappping'"):
+        read_params_file(p)                                  # a misspelt section of ours: strict
     assert read_params_file(p, strict=False) == {"ros": {"shutdown_timeout_s": 30.0}}
     assert Launcher(LaunchOptions(params_file=str(p))).stop_timeout["mapper_node"] == 180.0
     p.write_text("/**:\n  ros__parameters:\n    use_sim_time: true\n    mapping.background: [0, 1, 1.0]\n")
     with pytest.raises(ConfigError, match="mapping.background: ROS 2 list parameters hold one"):
         read_params_file(p, strict=False)                    # rcl would refuse it anyway
+
+
+def test_params_read_like_rcl_types_them(tmp_path):
+    """rcl reads `1e-4` as a double (YAML 1.2); PyYAML's YAML 1.1 made it a string, so a file the
+    nodes took was refused by `vings run`. Non-finite numbers are refused everywhere."""
+    p = tmp_path / "p.yaml"
+    p.write_text("/**:\n  ros__parameters:\n    frontend:\n      lm_lambda: 1e-4\n    mapping:\n      lr_means: 2E-5\n")
+    from vings_core.frontend import FrontendConfig
+    from vings_core.mapping import MapperConfig
+    assert load_section(FrontendConfig, "frontend", p).lm_lambda == 1e-4
+    assert load_section(MapperConfig, "mapping", p).lr_means == 2e-5
+    for bad in (".nan", ".inf", "-.inf"):
+        p.write_text(f"/**:\n  ros__parameters:\n    mapping:\n      lr_means: {bad}\n")
+        with pytest.raises(ConfigError, match="mapping.lr_means: expected a finite number"):
+            load_section(MapperConfig, "mapping", p)
+
+
+def test_overrides_rcl_would_ignore_are_refused_before_any_node_starts(tmp_path):
+    """With a params file, rcl keeps the FILE's value when a -p override has another type
+    (`-p mapping.points_per_keyframe:=1e4` over 20000): the launcher and every node refuse it."""
+    from vings_ros.launch import Launcher, LaunchOptions
+    from vings_ros.node_common import check_parameters, param_rules, run_node
+    f = str(default_params_file())
+    for name, raw, msg in (("mapping.points_per_keyframe", "1e4", "is a double, but the params file gives "
+                            "mapping.points_per_keyframe as integer 20000"),
+                           ("ros.resume", "0", "is an integer, but the params file gives ros.resume as bool"),
+                           ("ros.queue_size", "abc", "is a string"),
+                           ("frontend.window", "8.0", "is a double")):
+        with pytest.raises(ConfigError, match=msg):
+            Launcher(LaunchOptions(params_file=f, extra_params={name: raw}))
+        argv = ["node", "--ros-args", "--params-file", f, "-p", f"{name}:={raw}"]
+        with pytest.raises(ConfigError, match=msg):
+            check_parameters(*param_rules(argv), "vings node")
+    # the same types pass, and a wrong value is still named through the stage's config
+    assert check_parameters(*param_rules(["n", "--ros-args", "--params-file", f, "-p",
+                                          "mapping.points_per_keyframe:=10000"]), "n")["mapping"][
+        "points_per_keyframe"] == 10000
+    with pytest.raises(ConfigError, match="mapping.iters_per_keyframe: expected an integer"):
+        check_parameters(*param_rules(["n", "--ros-args", "-p", "mapping.iters_per_keyframe:=20.5"]), "n")
+    # a node started as `ros2 run` would start it exits with one line, code 2
+    assert run_node(lambda: None, ["frontend_node", "--ros-args", "--params-file", f, "-p",
+                                   "mapping.points_per_keyframe:=1e4"]) == 2
+
+
+STAND_IN_NODE = """
+import signal, sys, time
+from pathlib import Path
+log = Path(sys.argv[1])
+def stop(sig, frame):
+    with log.open("a") as f:
+        f.write(f"{time.monotonic():.6f} got {sig}\\n")
+    sys.exit(0)
+signal.signal(signal.SIGINT, stop)
+signal.signal(signal.SIGTERM, stop)
+log.write_text("started\\n")
+while True:
+    time.sleep(0.05)
+"""
+
+LAUNCH_CHILD = """
+import sys
+from vings_ros import launch as L
+L.NODES = {k: f"stand_in_{k}" for k in L.NODES}
+print("rc", L.Launcher(L.LaunchOptions(nodes=["frontend_node", "mapper_node"])).run(), flush=True)
+"""
+
+
+def test_launcher_stops_the_graph_in_order_when_its_terminal_closes(tmp_path):
+    """SIGHUP (terminal or SSH session closed) used to kill the launcher alone and leave the nodes,
+    each in its own session, running without a parent; now it stops them like Ctrl-C."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+    for name in ("frontend_node", "mapper_node"):
+        (tmp_path / f"stand_in_{name}.py").write_text(
+            f"import runpy, sys\nsys.argv[1:] = [{str(tmp_path / (name + '.log'))!r}]\n"
+            f"runpy.run_path({str(tmp_path / 'stand_in.py')!r}, run_name='__main__')\n")
+    (tmp_path / "stand_in.py").write_text(STAND_IN_NODE)
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(tmp_path), str(Path(__file__).parents[1])]))
+    p = subprocess.Popen([sys.executable, "-c", LAUNCH_CHILD], env=env, stdout=subprocess.PIPE,
+                         stderr=subprocess.PIPE, text=True)
+    logs = [tmp_path / "frontend_node.log", tmp_path / "mapper_node.log"]
+    t_end = time.monotonic() + 60
+    while not all(f.exists() for f in logs) and time.monotonic() < t_end:
+        time.sleep(0.1)
+    p.send_signal(signal.SIGHUP)
+    out, err = p.communicate(timeout=60)
+    assert "rc 0" in out, err
+    got = [float(f.read_text().splitlines()[-1].split()[0]) for f in logs]
+    assert got[0] < got[1], "the front end stops before the mapper"

@@ -14,7 +14,9 @@ every node block, then picks one stage section. Unknown keys and values of the w
 from __future__ import annotations
 
 import dataclasses
+import math
 import os
+import re
 import typing
 from pathlib import Path
 from typing import Any, Type, TypeVar
@@ -30,6 +32,28 @@ C = TypeVar("C")
 #: top-level sections of ``ros__parameters`` (the nodes read the same names as ``section.key``)
 KNOWN_SECTIONS = ("ros", "frontend", "mapping", "run")
 
+#: node names of the VINGS graph: a params-file block for another node (rviz, a driver) is not ours
+VINGS_NODES = ("frontend_node", "mapper_node", "recorder_node")
+
+#: parameters rclpy itself declares or reads (``qos_overrides.*`` too): not a VINGS section
+ROS_BUILTIN_KEYS = ("use_sim_time", "start_type_description_service", "qos_overrides")
+
+
+class _RosYamlLoader(yaml.SafeLoader):
+    """PyYAML's safe loader with YAML 1.2 floats, as rcl reads them: ``1e-4`` is a number (YAML
+    1.1, PyYAML's default, makes it a string unless written ``1.0e-4``)."""
+
+
+_RosYamlLoader.add_implicit_resolver(
+    "tag:yaml.org,2002:float",
+    re.compile(r"""^[-+]?(?:[0-9][0-9_]*(?:\.[0-9_]*)?|\.[0-9_]+)[eE][-+]?[0-9]+$"""),
+    list("-+0123456789."))
+
+
+def ros_yaml_load(text: str) -> Any:
+    """Parse a params file or a ``-p name:=value`` value the way rcl types it."""
+    return yaml.load(text, Loader=_RosYamlLoader)  # noqa: S506 - a SafeLoader subclass
+
 
 def read_params_file(path: str | os.PathLike, sections: tuple = KNOWN_SECTIONS, strict: bool = True) -> dict:
     """Merged ``ros__parameters`` of every node block of a ROS 2 params YAML (``/**`` first).
@@ -44,7 +68,7 @@ def read_params_file(path: str | os.PathLike, sections: tuple = KNOWN_SECTIONS, 
         raise ConfigError(f"{path}: params file not found")
     text = read_utf8_text(path, "params file", ConfigError)
     try:
-        doc = yaml.safe_load(text) or {}
+        doc = ros_yaml_load(text) or {}
     except yaml.YAMLError as e:
         raise ConfigError(f"{path}: {describe_yaml_error(e)}") from None
     if not isinstance(doc, dict):
@@ -52,6 +76,8 @@ def read_params_file(path: str | os.PathLike, sections: tuple = KNOWN_SECTIONS, 
     merged: dict = {}
     keys = sorted(doc, key=lambda k: k != "/**")
     for node in keys:
+        if str(node).rstrip("/").split("/")[-1] not in ("**", *VINGS_NODES):
+            continue                  # another node's block (rviz, a camera driver): not ours
         block = doc[node]
         if not isinstance(block, dict) or "ros__parameters" not in block:
             raise ConfigError(f"{path}: node block {node!r} has no 'ros__parameters' mapping")
@@ -61,6 +87,8 @@ def read_params_file(path: str | os.PathLike, sections: tuple = KNOWN_SECTIONS, 
                               f"sections, got {params!r}")
         _deep_merge(merged, _expand_dotted(params, f"{path}: node block {node!r}"))
     _check_ros_lists(merged, f"{path}")
+    for k in ROS_BUILTIN_KEYS:        # rclpy's own: the nodes accept them, so does vings run
+        merged.pop(k, None)
     unknown = [k for k in merged if k not in sections]
     if unknown and not strict:      # rclpy's own (use_sim_time, qos_overrides) or other nodes' keys
         return {k: v for k, v in merged.items() if k in sections}
@@ -183,6 +211,8 @@ def _coerce(tp: Any, val: Any, where: str) -> Any:
         raise ConfigError(f"{where}: expected an integer, got {val!r}")
     if tp is float:
         if isinstance(val, (int, float)) and not isinstance(val, bool):
+            if not math.isfinite(val):
+                raise ConfigError(f"{where}: expected a finite number, got {val!r}")
             return float(val)
         raise ConfigError(f"{where}: expected a number, got {val!r}")
     if tp is str:

@@ -18,13 +18,11 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Optional, TextIO
 
-import yaml
-
-from vings_core.config import config_from_dict, read_params_file
+from vings_core.config import config_from_dict
 from vings_core.errors import ConfigError
 from vings_core.util import check_output_file
 
-from .node_common import NodeConfig
+from .node_common import NodeConfig, check_parameters
 from .ros_env import cleanup_fastdds_shm, ros_environment, shm_snapshot
 
 NODES = {"frontend_node": "vings_ros.frontend_node", "mapper_node": "vings_ros.mapper_node",
@@ -71,13 +69,11 @@ class Launcher:
         self.out = out or sys.stderr
         self.procs: dict[str, subprocess.Popen] = {}
         self._stopping = False
-        # the nodes' ros section as they will see it (params file, then -p), checked before any node
-        # starts; its shutdown_timeout_s sets how long the mapper may take to stop
-        sections = read_params_file(opt.params_file, strict=False) if opt.params_file else {}
-        ros = {**sections.get("ros", {}),
-               **{k.split(".", 1)[1]: yaml.safe_load(v) if isinstance(v, str) else v   # as rcl parses -p
-                  for k, v in opt.extra_params.items() if k.startswith("ros.")}}
-        ncfg = config_from_dict(NodeConfig, ros, "vings launch: ros")
+        # every section as the nodes will see it (params file, then -p), checked before any node
+        # starts; the ros section's shutdown_timeout_s sets how long the mapper may take to stop
+        sections = check_parameters([opt.params_file] if opt.params_file else [],
+                                    {k: _ros_value(v) for k, v in opt.extra_params.items()}, "vings launch")
+        ncfg = config_from_dict(NodeConfig, sections["ros"], "vings launch: ros")
         self.stop_timeout = {**STOP_TIMEOUT_S, "mapper_node": max(
             STOP_TIMEOUT_S["mapper_node"], ncfg.shutdown_timeout_s + MAPPER_SAVE_MARGIN_S)}
         if opt.record and not str(opt.record).endswith(".mcap"):
@@ -144,13 +140,13 @@ class Launcher:
                 self._say(f"the recorder's partial recording is in {f} (not moved to {out})")
 
     def run(self) -> int:
-        """Start, watch until a node dies or SIGINT/SIGTERM; returns the exit code."""
+        """Start, watch until a node dies or SIGINT/SIGTERM/SIGHUP; returns the exit code."""
         stop_requested = []
 
         def _sig(signum, frame):  # noqa: ARG001
             stop_requested.append(signum)
 
-        old = {s: signal.signal(s, _sig) for s in (signal.SIGINT, signal.SIGTERM)}
+        old = {s: signal.signal(s, _sig) for s in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)}
         code = 0
         try:
             self.start()

@@ -100,6 +100,70 @@ class NodeConfig:
 BUILTIN_PARAMETERS = ("use_sim_time", "start_type_description_service")
 
 
+def _rcl_type(v: Any) -> str:
+    if isinstance(v, bool):
+        return "bool"
+    if isinstance(v, int):
+        return "integer"
+    if isinstance(v, float):
+        return "double"
+    if isinstance(v, list):
+        return f"{_rcl_type(v[0]) if v else 'empty'} array"
+    return "string"
+
+
+def section_classes() -> dict:
+    """Params section -> config dataclass."""
+    from vings_core.frontend.config import FrontendConfig
+    from vings_core.mapping.config import MapperConfig
+    from vings_core.pipeline import RunConfig
+    return {"ros": NodeConfig, "frontend": FrontendConfig, "mapping": MapperConfig, "run": RunConfig}
+
+
+def param_rules(argv: list[str]) -> tuple[list[str], dict[str, str]]:
+    """``(params files, {name: raw value})`` of the ``--ros-args`` part of a node's argv."""
+    files, rules = [], {}
+    args = argv[argv.index("--ros-args") + 1:] if "--ros-args" in argv else []
+    for flag, val in zip(args, args[1:]):
+        if flag == "--params-file":
+            files.append(val)
+        elif flag in ("-p", "--param") and ":=" in val:
+            name, _, raw = val.partition(":=")
+            rules[name] = raw
+    return files, rules
+
+
+def check_parameters(files: list[str], rules: dict[str, str], where: str) -> dict[str, dict]:
+    """The sections the nodes will see (params files, then ``-p`` rules), checked before rclpy
+    starts: every section through its config dataclass, and every ``-p`` value against the type the
+    params file gives the same parameter. rcl keeps the FILE's value when the two types differ (an
+    override ``-p mapping.points_per_keyframe:=1e4`` over the file's ``20000`` is silently
+    ignored), so such an override is a :class:`ConfigError` here. Returns ``{section: {key: value}}``."""
+    from vings_core.config import ros_yaml_load
+    sections: dict[str, dict] = {s: {} for s in KNOWN_SECTIONS}
+    for f in files:
+        for sec, vals in read_params_file(f, strict=False).items():
+            sections.setdefault(sec, {}).update(vals)
+    for name, raw in rules.items():
+        sec, _, key = name.partition(".")
+        if name in BUILTIN_PARAMETERS or name.startswith("qos_overrides.") or sec not in sections:
+            continue    # rclpy's own, or a section the node itself reports as unknown
+        try:
+            val = ros_yaml_load(raw) if raw.strip() else raw
+        except Exception:  # noqa: BLE001 - rcl takes what YAML cannot parse as a string
+            val = raw
+        if key in sections[sec] and _rcl_type(sections[sec][key]) != _rcl_type(val):
+            old = sections[sec][key]
+            raise ConfigError(f"{where}: -p {name}:={raw} is {'an' if _rcl_type(val)[0] in 'aeiou' else 'a'} "
+                              f"{_rcl_type(val)}, but the params file gives {name} as {_rcl_type(old)} "
+                              f"{old!r}: rcl would silently keep the file's value; write it as {_rcl_type(old)} "
+                              f"(e.g. {'1.0 for 1' if _rcl_type(old) == 'double' else 'without a decimal point'})")
+        sections[sec][key] = val
+    for sec, cls in section_classes().items():
+        config_from_dict(cls, sections.get(sec, {}), f"{where}: {sec}")
+    return sections
+
+
 def worth_reporting(count: int) -> bool:
     """Rate limit for repeated warnings: the 1st, the 20th, then every 200th occurrence."""
     return count in (1, 20) or count % 200 == 0
@@ -253,11 +317,11 @@ def run_node(make_node: Callable[[], Any], args: Optional[list[str]] = None) -> 
 
     logging.basicConfig(level=logging.INFO, format="[%(name)s] %(levelname)s %(message)s")
     argv = list(sys.argv if args is None else args)
-    files = [argv[i + 1] for i, a in enumerate(argv[:-1]) if a == "--params-file"]
     try:
         apply_ros_environment()
-        for f in files:     # rcl parses them in init, with a traceback for a bad file
-            read_params_file(f, strict=False)
+        # rcl parses the files in init (a traceback for a bad one) and ignores a -p override whose
+        # type differs from the file's value: both are checked here first
+        check_parameters(*param_rules(argv), "vings node")
         rclpy.init(args=argv, signal_handler_options=rclpy.signals.SignalHandlerOptions.NO)
     except VingsError as e:
         print(f"vings node: error: {e}", file=sys.stderr)
@@ -274,6 +338,7 @@ def run_node(make_node: Callable[[], Any], args: Optional[list[str]] = None) -> 
 
     signal.signal(signal.SIGINT, _sig)
     signal.signal(signal.SIGTERM, _sig)
+    signal.signal(signal.SIGHUP, _sig)     # the terminal closed: stop cleanly (final checkpoint)
     node = None
     ex = None
     code = 0

@@ -28,9 +28,11 @@ def register(subparsers) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from vings_core.config import load_section
+    from vings_core.config import ConfigError, load_section
     from vings_core.pipeline import RunConfig, SlamRunner, open_working_source
 
+    if not str(args.out).strip():
+        raise ConfigError("--out: give an output folder (an empty path would write into the current folder)")
     cfg = load_section(RunConfig, "run", args.params)
     if args.params:     # every section (the nodes' too) before any work: a typo fails at once
         from vings_core.frontend import FrontendConfig
