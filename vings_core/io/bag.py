@@ -127,7 +127,6 @@ def pose_of(msg, msgtype: str) -> np.ndarray:
 REORDER_WINDOW = 256
 
 
-
 def _non_ros_mcap_channels(path: Path) -> list[str]:
     """``'topic' (encoding)`` of the channels of an MCAP file (or of the ``.mcap`` files of a
     rosbag2 folder) whose messages are not ROS 1/ROS 2 encoded (JSON, protobuf, ...): rosbags
@@ -148,6 +147,7 @@ def _non_ros_mcap_channels(path: Path) -> list[str]:
         out += [f"{c.topic!r} ({c.message_encoding})" for c in summary.channels.values()
                 if c.message_encoding not in ("cdr", "ros1")]
     return out
+
 
 class BagSource(LoaderSource):
     """ROS 1 ``.bag``, ROS 2 bag folder (``metadata.yaml``), ``.db3`` or plain ``.mcap`` (module doc)."""
