@@ -156,7 +156,8 @@ class _Cfg:
 def test_config_loading(tmp_path):
     p = tmp_path / "p.yaml"
     p.write_text("/**:\n  ros__parameters:\n    stage:\n      iters: 5\n"
-                 "node:\n  ros__parameters:\n    stage:\n      lr: 2\n")
+                 "mapper_node:\n  ros__parameters:\n    stage:\n      lr: 2\n"
+                 "rviz:\n  ros__parameters:\n    stage:\n      lr: 7\n")   # another node's block: not ours
     cfg = load_section(_Cfg, "stage", p, sections=("stage",))
     assert cfg == _Cfg(iters=5, lr=2.0)
     # the project's own sections: a misspelt one is an error, not silently ignored

@@ -336,12 +336,22 @@ def test_ctrl_c_while_the_mapper_drains_its_queue_stops_it(tmp_path):
     import threading
     from vings_core.pipeline import RunConfig, SlamRunner
     r = SlamRunner(_room_source(tmp_path, frames=40), tmp_path / "o", _fast_params(tmp_path, iters=300),
-                   RunConfig(sync=False, checkpoint_every=0), progress=False)
+                   RunConfig(sync=False, checkpoint_every=0, max_mapper_lag=1000), progress=False)
     stop = r._stop_worker
     timers = []
+    # the mapper starts only when tracking has ended, so a backlog is certain at the Ctrl-C (on a
+    # loaded machine the GIL-starved front end used to let the mapper catch up first: no drain)
+    tracking_done = threading.Event()
+    add = r.mapper.add_keyframe
+
+    def gated_add(*a, **k):
+        tracking_done.wait(120)
+        return add(*a, **k)
+    r.mapper.add_keyframe = gated_add
 
     def interrupted_wait(worker):
         r._stop_worker = stop       # one Ctrl-C only (the failure path waits again)
+        tracking_done.set()
         t = threading.Timer(0.5, signal.pthread_kill, (threading.main_thread().ident, signal.SIGINT))
         t.daemon = True
         timers.append(t)

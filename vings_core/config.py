@@ -76,8 +76,6 @@ def read_params_file(path: str | os.PathLike, sections: tuple = KNOWN_SECTIONS, 
     merged: dict = {}
     keys = sorted(doc, key=lambda k: k != "/**")
     for node in keys:
-        if str(node).rstrip("/").split("/")[-1] not in ("**", *VINGS_NODES):
-            continue                  # another node's block (rviz, a camera driver): not ours
         block = doc[node]
         if not isinstance(block, dict) or "ros__parameters" not in block:
             raise ConfigError(f"{path}: node block {node!r} has no 'ros__parameters' mapping")
@@ -85,6 +83,8 @@ def read_params_file(path: str | os.PathLike, sections: tuple = KNOWN_SECTIONS, 
         if not isinstance(params, dict):
             raise ConfigError(f"{path}: node block {node!r}: 'ros__parameters' must be a mapping of "
                               f"sections, got {params!r}")
+        if str(node).rstrip("/").split("/")[-1] not in ("**", *VINGS_NODES):
+            continue                  # another node's block (rviz, a camera driver): not ours
         _deep_merge(merged, _expand_dotted(params, f"{path}: node block {node!r}"))
     _check_ros_lists(merged, f"{path}")
     for k in ROS_BUILTIN_KEYS:        # rclpy's own: the nodes accept them, so does vings run
