@@ -170,8 +170,8 @@ class Calibration:
     ``gyro_random_walk`` rad/s^2/sqrt(Hz), ``accel_noise_density`` m/s^2/sqrt(Hz),
     ``accel_random_walk`` m/s^3/sqrt(Hz). ``imu_rate_hz`` is nominal; ``has_imu`` is False for
     camera-only sources. ``gravity`` is the magnitude in m/s^2. ``T_bc_known`` is False when no
-    source of the calibration gave the extrinsic (``T_bc`` is then an identity placeholder: body
-    ground truth cannot be mapped to cam0 through it).
+    source of the calibration gave the extrinsic (``T_bc`` then holds the identity as a default that
+    nobody measured: body ground truth cannot be mapped to cam0 through it).
     """
 
     camera: Optional[CameraModel]

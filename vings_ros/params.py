@@ -29,14 +29,8 @@ def default_sections() -> dict:
     ``run``)."""
     import dataclasses
 
-    from vings_core.frontend import FrontendConfig
-    from vings_core.mapping import MapperConfig
-    from vings_core.pipeline import RunConfig
-
-    from .node_common import NodeConfig
-    return {name: dataclasses.asdict(cls()) for name, cls in
-            (("ros", NodeConfig), ("frontend", FrontendConfig), ("mapping", MapperConfig),
-             ("run", RunConfig))}
+    from .node_common import section_classes
+    return {name: dataclasses.asdict(cls()) for name, cls in section_classes().items()}
 
 
 def format_params_file(sections: dict) -> str:

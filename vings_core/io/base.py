@@ -85,7 +85,7 @@ class Source(ABC):
         """Ground truth as cam0 ``T_wc`` (body ground truth right-multiplied by ``T_bc``).
 
         Raises ``InputError`` when the ground truth is of the body but no extrinsic ``T_bc`` is
-        known (an identity placeholder would put the lever arm into every metric)."""
+        known (mapping through an assumed identity would put the lever arm into every metric)."""
         if self.ground_truth is None:
             return None
         if self.gt_frame == "camera":

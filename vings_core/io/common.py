@@ -238,12 +238,8 @@ class LoaderSource(Source):
         return self._imu_st.copy(), self._imu_g.copy(), self._imu_a.copy()
 
     def gt_camera_trajectory(self) -> Optional[Trajectory]:
-        if self.ground_truth is None:
-            return None
-        if self.gt_frame == "camera":
-            return self.ground_truth
-        if self.calibration is None:
-            return None
+        if self.calibration is None and self.gt_frame != "camera":
+            return None           # a recording without any calibration: no T_bc at all
         return super().gt_camera_trajectory()
 
     def info(self) -> dict:

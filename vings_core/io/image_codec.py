@@ -148,11 +148,12 @@ def decode_compressed(data: Union[bytes, bytearray, memoryview, np.ndarray], fmt
     # compressed_image_transport compresses a Bayer image as the raw mosaic ("bayer_rggb8; png
     # compressed "): demosaic it, as decode_image does for a raw Image
     source_enc = fmt.split(";")[0].strip().lower() if ";" in fmt else ""
-    if source_enc.startswith("bayer_") and source_enc[:10] + "8" in _BAYER_8:
+    pattern = source_enc[:10] + "8"           # bayer_rggb8 / bayer_rggb16: one OpenCV code
+    if pattern in _BAYER_8:
         if img.ndim != 2 or img.shape[0] % 2 or img.shape[1] % 2:
             raise InputError(f"{where}: a {source_enc} compressed image must decode to one channel of "
                              f"even width and height, got shape {img.shape} (format {fmt!r})")
-        return cv2.cvtColor(img, _bayer_code(source_enc[:10] + "8"))
+        return cv2.cvtColor(img, _bayer_code(pattern))
     return bgr_to_rgb(img)
 
 

@@ -35,12 +35,9 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError("--out: give an output folder (an empty path would write into the current folder)")
     cfg = load_section(RunConfig, "run", args.params)
     if args.params:     # every section (the nodes' too) before any work: a typo fails at once
-        from vings_core.frontend import FrontendConfig
-        from vings_core.mapping import MapperConfig
-        from vings_ros.node_common import NodeConfig
-        load_section(NodeConfig, "ros", args.params)
-        load_section(FrontendConfig, "frontend", args.params)
-        load_section(MapperConfig, "mapping", args.params)
+        from vings_ros.node_common import section_classes
+        for section, cls in section_classes().items():
+            load_section(cls, section, args.params)
     cfg.sync = cfg.sync or args.sync
     cfg.gt_poses = cfg.gt_poses or args.gt_poses
     source = open_working_source(args.source, source_options(args), cfg.width, cfg.height)
