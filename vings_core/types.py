@@ -14,12 +14,20 @@ Conventions (see docs/data_contracts.md):
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
-from typing import Optional
+from typing import Any, Optional
 
 import numpy as np
 import torch
 
 DISTORTION_MODELS = ("none", "radtan", "equidistant")
+
+
+def _as_int(v: Any, what: str) -> int:
+    """``v`` (int or numpy integer) as a Python int; ValueError naming ``what`` otherwise (a float
+    nanosecond stamp has already lost precision)."""
+    if isinstance(v, bool) or not isinstance(v, (int, np.integer)):
+        raise ValueError(f"{what} must be an integer, got {v!r} ({type(v).__name__})")
+    return int(v)
 
 
 @dataclass
@@ -66,6 +74,9 @@ class CameraModel:
                 v = float("nan")
             if not np.isfinite(v):
                 raise ValueError(f"camera {name} must be a finite number, got {getattr(self, name)!r}")
+            # a plain float: numpy scalars (from a K matrix) are not JSON-serialisable, and a map
+            # checkpoint or metrics file would fail to write long after the camera was built
+            setattr(self, name, v)
         if self.width <= 0 or self.height <= 0:
             raise ValueError(f"camera size must be positive, got {self.width}x{self.height}")
         if not (self.fx > 0 and self.fy > 0):
@@ -277,6 +288,8 @@ class Keyframe:
     index: int = -1
 
     def __post_init__(self) -> None:
+        self.stamp_ns = _as_int(self.stamp_ns, "Keyframe.stamp_ns")
+        self.index = _as_int(self.index, "Keyframe.index")
         self.T_wc = torch.as_tensor(self.T_wc, dtype=torch.float64).reshape(4, 4)
         H, W = self.camera.height, self.camera.width
         for name in ("image", "depth", "inv_depth_var", "valid"):

@@ -16,6 +16,7 @@ over Gaussians or pixels in Python.
 from __future__ import annotations
 
 import io
+import itertools
 import json
 import math
 import os
@@ -248,7 +249,9 @@ class Mapper:
     def save_ply(self, path: str | os.PathLike) -> None:
         """Write every Gaussian (active + passive) as a viewer-compatible ``map.ply``."""
         from .ply import write_ply
-        write_ply(path, self.all_gaussians())
+        # chunk by chunk: the passive store (spilled to disk in a long run) is not gathered in memory
+        write_ply(path, lambda: itertools.chain((self.gm,), self.passive.iter_moved(self._poses)),
+                  sh_degree=self.cfg.sh_degree)
 
     def update_tiers(self, T_wc_now: np.ndarray) -> dict:
         """Storage tiers: Gaussians whose ID(g) keyframe is within ``tau`` of the camera are active
@@ -288,17 +291,6 @@ class Mapper:
         d: dict[str, np.ndarray] = {}
         for k, v in self.gm.to_numpy().items():
             d[f"active/{k}"] = v
-        # passive Gaussians as stored, with the owner poses they were stored under (a pose change
-        # still pending for them is applied once, on return, exactly as without the checkpoint)
-        pas = self.passive.state()
-        if not pas:
-            pas = GaussianMap.empty(self.cfg.sh_degree, self.cfg.window_size).to_numpy()
-            pas.update(chunk=np.zeros(0, np.int64), owner_chunk=np.zeros(0, np.int64),
-                       owners=np.zeros(0, np.int64), owner_T=np.zeros((0, 4, 4)))
-        for k in ALL_FIELDS:
-            d[f"passive/{k}"] = pas[k]
-        for k in ("chunk", "owner_chunk", "owners", "owner_T"):
-            d[f"passive_chunks/{k}"] = pas[k]
         d["kf/stamps"] = np.array(self._order, dtype=np.int64)
         d["kf/T_wc"] = np.stack([self._poses[s] for s in self._order]) if self._order else np.zeros((0, 4, 4))
         for i, kf in enumerate(self.window):
@@ -328,6 +320,17 @@ class Mapper:
             with zipfile.ZipFile(tmp, "w", zipfile.ZIP_STORED, allowZip64=True) as zf:
                 for k, a in d.items():
                     _write_npy(zf, k, a)
+                # passive Gaussians chunk by chunk as stored (a spilled chunk is read only while it
+                # is written), with the owner poses they were stored under: a pose change still
+                # pending for them is applied once, on return, exactly as without the checkpoint
+                count = 0
+                for fields, owners, owner_T in self.passive.stored_chunks():
+                    for k in ALL_FIELDS:
+                        _write_npy(zf, f"pchunk/{count}/{k}", fields[k])
+                    _write_npy(zf, f"pchunk/{count}/owners", owners)
+                    _write_npy(zf, f"pchunk/{count}/owner_T", owner_T)
+                    count += 1
+                _write_npy(zf, "pchunk/count", np.array(count, dtype=np.int64))
                 saved, index = [], []
                 for s, rec in self._history.items():
                     for k in HISTORY_FIELDS:
@@ -373,11 +376,13 @@ class Mapper:
         cfg = config if config is not None else config_from_dict(MapperConfig, meta["config"], f"{path}: config")
         m = Mapper(cfg, device)
         m.gm = GaussianMap.from_numpy({k: z[f"active/{k}"] for k in ALL_FIELDS}, device)
-        pas = GaussianMap.from_numpy({k: z[f"passive/{k}"] for k in ALL_FIELDS})
-        want_sh = (cfg.sh_degree + 1) ** 2
-        if m.gm.sh.shape[1] != want_sh or pas.sh.shape[1] != want_sh:
-            raise InputError(f"{path}: checkpoint holds SH of degree {math.isqrt(m.gm.sh.shape[1]) - 1}, "
-                             f"the config {cfg.sh_degree}; load it with the same sh_degree")
+
+        def _check_sh(gm: GaussianMap) -> GaussianMap:
+            if gm.sh.shape[1] != (cfg.sh_degree + 1) ** 2:
+                raise InputError(f"{path}: checkpoint holds SH of degree {math.isqrt(gm.sh.shape[1]) - 1}, "
+                                 f"the config {cfg.sh_degree}; load it with the same sh_degree")
+            return gm
+        _check_sh(m.gm)
         stamps = z["kf/stamps"]
         Ts = z["kf/T_wc"]
         m._order = [int(s) for s in stamps]
@@ -403,13 +408,19 @@ class Mapper:
             m._pose_v = np.array(z["pose_adam/v_shared"], dtype=np.float64)
         m._pose_adam = {int(s): (np.array(a), np.array(b), int(c)) for s, a, b, c in
                         zip(z["pose_adam/stamps"], z["pose_adam/m"], z["pose_adam/v"], z["pose_adam/steps"])}
-        if "passive_chunks/chunk" in z:
-            if len(pas):
+        if "pchunk/count" in z:        # one chunk at a time (it spills as it goes, like the saved store)
+            for k in range(int(z["pchunk/count"])):
+                p = f"pchunk/{k}/"
+                gm = _check_sh(GaussianMap.from_numpy({f: z[p + f] for f in ALL_FIELDS}))
+                m.passive.put(gm, {int(s): T for s, T in zip(z[p + "owners"], z[p + "owner_T"])})
+        else:                          # older layouts: the passive store in stacked arrays
+            pas = _check_sh(GaussianMap.from_numpy({k: z[f"passive/{k}"] for k in ALL_FIELDS}))
+            if "passive_chunks/chunk" in z and len(pas):
                 m.passive.restore({**{k: z[f"passive/{k}"] for k in ALL_FIELDS},
                                    **{k: z[f"passive_chunks/{k}"] for k in ("chunk", "owner_chunk", "owners",
                                                                            "owner_T")}})
-        elif len(pas):       # older checkpoints: passive Gaussians saved moved to the current poses
-            m.passive.put(pas, m._poses)
+            elif len(pas):             # oldest: passive Gaussians saved moved to the current poses
+                m.passive.put(pas, m._poses)
         m.render_count = int(meta["render_count"])
         m.kf_count = int(meta["kf_count"])
         m._queue = [int(s) for s in meta["queue"]]

@@ -19,10 +19,11 @@ from __future__ import annotations
 
 import math
 import os
+from typing import Callable, Iterable, Optional
 
 import numpy as np
 
-from ..errors import InputError
+from ..errors import InputError, VingsError
 from ..util import atomic_write, log
 from .gaussians import GaussianMap
 
@@ -55,62 +56,111 @@ def gaussians_to_ply_array(gm: GaussianMap) -> np.ndarray:
                            for c in cols], 1)
 
 
-def write_ply(path: str | os.PathLike, gm: GaussianMap) -> int:
-    """Write ``gm`` as a viewer-compatible binary PLY, atomically; returns the number of splats
-    written. Gaussians with a non-finite value or a zero quaternion are left out (with a warning):
-    viewers break on NaN bounds or normalise the quaternion to NaN."""
-    names = ply_property_names(gm.sh_degree)
+def _finite_rows(gm: GaussianMap) -> tuple[np.ndarray, np.ndarray]:
+    """``(rows, ok)``: the PLY rows of ``gm`` and the mask of those a viewer can draw (finite values,
+    non-zero quaternion)."""
     data = gaussians_to_ply_array(gm)
-    q = gm.quats.detach().cpu()
-    ok = np.isfinite(data).all(1) & (q.norm(dim=-1) > 0).numpy()
-    if not ok.all():
+    ok = np.isfinite(data).all(1) & (gm.quats.detach().cpu().norm(dim=-1) > 0).numpy()
+    return data, ok
+
+
+def write_ply(path: str | os.PathLike, gm: GaussianMap | Callable[[], Iterable[GaussianMap]],
+              sh_degree: Optional[int] = None) -> int:
+    """Write Gaussians as a viewer-compatible binary PLY, atomically; returns the number of splats
+    written. ``gm``: one map, or a function returning an iterable of maps written one after the
+    other (called twice: once to count, once to write, so a large map is never gathered in memory;
+    ``sh_degree`` then gives the layout). Gaussians with a non-finite value or a zero quaternion
+    are left out (with a warning): viewers break on NaN bounds or normalise the quaternion to NaN."""
+    if isinstance(gm, GaussianMap):
+        parts: Callable[[], Iterable[GaussianMap]] = lambda: (gm,)
+        sh_degree = gm.sh_degree
+    else:
+        parts = gm
+        if sh_degree is None:
+            raise ValueError("write_ply: sh_degree is required with an iterable of maps")
+    names = ply_property_names(sh_degree)
+    total = bad = 0
+    for part in parts():
+        ok = _finite_rows(part)[1]
+        total += int(ok.sum())
+        bad += int((~ok).sum())
+    if bad:
         log.warning("%s: %d of %d Gaussians left out (non-finite values or a zero quaternion)",
-                    path, int((~ok).sum()), len(ok))
-        data = data[ok]
-    data = np.ascontiguousarray(data.astype("<f4"))
+                    path, bad, total + bad)
     header = ["ply", "format binary_little_endian 1.0", "comment VINGS-ROS 2DGS map (surfels: scale_2 is tiny)",
-              f"element vertex {len(data)}"] + [f"property float {p}" for p in names] + ["end_header"]
+              f"element vertex {total}"] + [f"property float {p}" for p in names] + ["end_header"]
     head = ("\n".join(header) + "\n").encode("ascii")
 
     def _w(tmp: str) -> None:
+        written = 0
         with open(tmp, "wb") as f:
             f.write(head)
-            f.write(data.tobytes())
+            for part in parts():
+                data, ok = _finite_rows(part)
+                data = np.ascontiguousarray(data[ok].astype("<f4"))
+                f.write(data.tobytes())
+                written += len(data)
+        if written != total:     # a passive chunk file lost between the two passes (reported)
+            raise VingsError(f"{path}: the map changed while it was written ({written} Gaussians "
+                             f"written, {total} counted); not replaced")
     atomic_write(path, _w)
-    return len(data)
+    return total
+
+
+_PLY_TYPES = {"char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short": "<i2", "int16": "<i2",
+              "ushort": "<u2", "uint16": "<u2", "int": "<i4", "int32": "<i4", "uint": "<u4", "uint32": "<u4",
+              "float": "<f4", "float32": "<f4", "double": "<f8", "float64": "<f8"}
 
 
 def read_ply(path: str | os.PathLike) -> dict[str, np.ndarray]:
-    """Read a binary little-endian PLY vertex element into ``{property: (N,) array}``."""
-    with open(path, "rb") as f:
-        raw = f.read()
+    """Read the ``vertex`` element of a binary little-endian PLY into ``{property: (N,) array}``.
+
+    Elements before ``vertex`` (e.g. a compressed splat file's ``chunk``) are skipped by their byte
+    size; a list property before or in ``vertex`` (variable size) or a malformed header is an
+    :class:`InputError` naming the file and the header line."""
+    try:
+        with open(path, "rb") as f:
+            raw = f.read()
+    except OSError as e:
+        raise InputError(f"{path}: cannot read PLY file: {e.strerror or e}") from None
     end = raw.find(b"end_header\n")
     if not raw.startswith(b"ply") or end < 0:
         raise InputError(f"{path}: not a PLY file (no 'ply' magic or no end_header)")
     lines = raw[:end].decode("ascii", errors="replace").splitlines()
     if "format binary_little_endian 1.0" not in lines:
         raise InputError(f"{path}: only binary_little_endian PLY is supported")
-    n = None
-    props: list[tuple[str, str]] = []
-    types = {"float": "<f4", "float32": "<f4", "double": "<f8", "uchar": "u1", "int": "<i4", "uint": "<u4"}
-    in_vertex = False
-    for ln in lines:
+    elements: list[tuple[str, int, list[tuple[str, str]]]] = []   # (name, count, [(prop, dtype)])
+    for no, ln in enumerate(lines, 1):
         t = ln.split()
-        if not t:
+        if not t or t[0] in ("ply", "format", "comment", "obj_info"):
             continue
         if t[0] == "element":
-            in_vertex = t[1] == "vertex"
-            if in_vertex:
-                n = int(t[2])
-        elif t[0] == "property" and in_vertex:
-            if t[1] not in types:
-                raise InputError(f"{path}: unsupported property type {t[1]!r}")
-            props.append((t[2], types[t[1]]))
-    if n is None:
-        raise InputError(f"{path}: no vertex element")
-    dt = np.dtype(props)
-    body = raw[end + len(b"end_header\n"):]
-    if len(body) < n * dt.itemsize:
-        raise InputError(f"{path}: truncated ({len(body)} bytes for {n} vertices of {dt.itemsize})")
-    arr = np.frombuffer(body[: n * dt.itemsize], dtype=dt, count=n)
-    return {name: arr[name].copy() for name, _ in props}
+            if len(t) != 3 or not t[2].isdigit():
+                raise InputError(f"{path}: header line {no} {ln!r}: expected 'element NAME COUNT'")
+            elements.append((t[1], int(t[2]), []))
+        elif t[0] == "property":
+            if not elements:
+                raise InputError(f"{path}: header line {no} {ln!r}: property before any element")
+            if t[1:2] == ["list"]:
+                raise InputError(f"{path}: header line {no} {ln!r}: list properties are not supported")
+            if len(t) != 3 or t[1] not in _PLY_TYPES:
+                raise InputError(f"{path}: header line {no} {ln!r}: expected 'property TYPE NAME' "
+                                 f"with TYPE one of {sorted(_PLY_TYPES)}")
+            elements[-1][2].append((t[2], _PLY_TYPES[t[1]]))
+        else:
+            raise InputError(f"{path}: header line {no} {ln!r}: unknown keyword {t[0]!r}")
+    offset = end + len(b"end_header\n")
+    for name, n, props in elements:
+        try:
+            dt = np.dtype(props)
+        except (TypeError, ValueError) as e:          # e.g. a property named twice
+            raise InputError(f"{path}: element {name!r}: {e}") from None
+        if name != "vertex":
+            offset += n * dt.itemsize
+            continue
+        body = raw[offset:]
+        if len(body) < n * dt.itemsize:
+            raise InputError(f"{path}: truncated ({len(body)} bytes for {n} vertices of {dt.itemsize})")
+        arr = np.frombuffer(body[: n * dt.itemsize], dtype=dt, count=n)
+        return {p: arr[p].copy() for p, _ in props}
+    raise InputError(f"{path}: no vertex element")

@@ -16,6 +16,7 @@ from __future__ import annotations
 import itertools
 import os
 import shutil
+import socket
 import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -71,11 +72,64 @@ def active_split(dist: torch.Tensor, tau: float, max_active: int) -> torch.Tenso
 # ----------------------------------------------------------------------------- spill folder
 
 
+_OWNER_FILE = "owner"
+
+
+def _process_identity(pid: int) -> Optional[str]:
+    """``"host pid start"`` of a live process (start: its start time from ``/proc``, so a reused pid
+    is not mistaken for the owner; empty where ``/proc`` is missing), None when it is not running."""
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return None
+    except PermissionError:
+        pass                       # alive, another user's
+    try:
+        with open(f"/proc/{pid}/stat", "rb") as f:
+            start = f.read().rsplit(b")", 1)[1].split()[19].decode()
+    except (OSError, IndexError):
+        start = ""
+    return f"{socket.gethostname()} {pid} {start}"
+
+
+def remove_stale_spill_folders(parent: Path, prefix: str) -> list[Path]:
+    """Delete the ``prefix*`` spill folders in ``parent`` whose owning process (on this host) has
+    ended: a mapper killed by SIGKILL or the OOM killer cannot clean up after itself. Folders
+    without an owner record (being created, or another host's) are left alone. Returns the
+    folders removed."""
+    removed = []
+    host = socket.gethostname()
+    try:
+        candidates = [d for d in parent.iterdir() if d.name.startswith(prefix) and d.is_dir()]
+    except OSError:
+        return removed
+    for d in candidates:
+        try:
+            rec = (d / _OWNER_FILE).read_text().split()
+            if len(rec) < 2 or rec[0] != host:
+                continue
+            alive = _process_identity(int(rec[1]))
+        except (OSError, ValueError):
+            continue
+        if alive is not None:
+            now_start, rec_start = alive.split()[2:3], rec[2:3]
+            if not (now_start and rec_start and now_start != rec_start):
+                continue           # the owner runs (its pid was not reused by another process)
+        shutil.rmtree(d, ignore_errors=True)
+        if not d.exists():
+            removed.append(d)
+    if removed:
+        log.warning("removed %d spill folder(s) left by mappers that ended without cleaning up: %s",
+                    len(removed), ", ".join(str(d) for d in removed))
+    return removed
+
+
 class SpillFolder:
     """A private folder for spilled ``.npz`` files: inside ``parent`` when given (created at once,
     so a bad ``mapping.spill_dir`` is reported up front), else a temporary folder made on first
     use. Stores sharing a parent never read, overwrite or delete each other's files; :meth:`close`
-    deletes the folder."""
+    deletes the folder. Each folder records its owning process, and folders of the same prefix
+    whose owner has ended (killed before it could clean up) are deleted when a new one is made."""
 
     def __init__(self, parent: Optional[str], prefix: str):
         self.prefix = prefix
@@ -83,14 +137,21 @@ class SpillFolder:
         if parent:
             try:
                 Path(parent).mkdir(parents=True, exist_ok=True)
-                self._dir = Path(tempfile.mkdtemp(prefix=prefix, dir=parent))
+                self._dir = self._make(Path(parent))
             except OSError as e:
                 raise ConfigError(f"mapping.spill_dir {parent!r}: cannot create a folder "
                                   f"there ({e.strerror or e})") from None
 
+    def _make(self, parent: Path) -> Path:
+        remove_stale_spill_folders(parent, self.prefix)
+        d = Path(tempfile.mkdtemp(prefix=self.prefix, dir=parent))
+        ident = _process_identity(os.getpid()) or ""
+        (d / _OWNER_FILE).write_text(ident + "\n")
+        return d
+
     def path(self, name: str) -> Path:
         if self._dir is None:
-            self._dir = Path(tempfile.mkdtemp(prefix=self.prefix))
+            self._dir = self._make(Path(tempfile.gettempdir()))
         return self._dir / name
 
     def write(self, name: str, arrays: dict) -> Path:
@@ -245,30 +306,28 @@ class PassiveStore:
         """Every stored Gaussian (copies, moved by pose changes), the store unchanged."""
         return self.take(lambda o: np.ones(len(o), dtype=bool), poses, remove=False)
 
-    def state(self) -> dict[str, np.ndarray]:
-        """The store as stored, for a lossless checkpoint (:meth:`restore`): every Gaussian's fields
-        ``{name: rows}`` *not* moved by pose changes since it was stored, ``chunk`` (row -> chunk
-        ordinal), and per (chunk, owner) the owner pose it was stored under: ``owner_chunk``,
-        ``owners``, ``owner_T``. Saving the moved Gaussians instead would round a later pose change
-        differently (two float32 moves instead of one). Empty dict for an empty store."""
-        parts, oc, ow, oT = [], [], [], []
+    def stored_chunks(self):
+        """The store as stored, one chunk at a time (a spilled chunk is read only while it is
+        yielded), for a lossless checkpoint: ``(fields, owners, owner_T)`` with the Gaussians'
+        fields ``{name: rows}`` *not* moved by pose changes since they were stored and, per owner
+        stamp, the pose it was stored under. Saving the moved Gaussians instead would round a later
+        pose change differently (two float32 moves instead of one). Chunks whose file is lost are
+        reported and dropped. Restore with :meth:`put` ``(GaussianMap.from_numpy(fields),
+        dict(zip(owners, owner_T)))`` in the same order."""
         for c in list(self.chunks):
             arrays = self._read(c)
             if arrays is None:
                 self.chunks.remove(c)
                 continue
-            k = len(parts)
-            parts.append(arrays)
-            oc.append(np.full(len(c.owners), k, np.int64))
-            ow.append(c.owners)
-            oT.append(c.owner_T)
-        if not parts:
-            return {}
-        out = {name: np.concatenate([a[name] for a in parts]) for name in ALL_FIELDS}
-        out["chunk"] = np.concatenate([np.full(len(a["kf_id"]), k, np.int64) for k, a in enumerate(parts)])
-        out["owner_chunk"], out["owners"] = np.concatenate(oc), np.concatenate(ow)
-        out["owner_T"] = np.concatenate(oT)
-        return out
+            yield arrays, c.owners, c.owner_T
+
+    def iter_moved(self, poses: dict[int, np.ndarray]):
+        """Every stored Gaussian, one chunk at a time (copies moved by pose changes since they were
+        stored; the store unchanged): for writing a large map without gathering it in memory."""
+        for arrays, owners, owner_T in self.stored_chunks():
+            gm = GaussianMap.from_numpy({k: v.copy() for k, v in arrays.items()})
+            _apply_pose_changes(gm, owners, owner_T, poses)
+            yield gm
 
     def restore(self, state: dict[str, np.ndarray]) -> None:
         """Append the chunks of a :meth:`state` (same chunk order and owner snapshots)."""
