@@ -23,7 +23,7 @@ from typing import NamedTuple, Optional
 import torch
 
 from ..geometry import se3_exp
-from .projective import Intrinsics, adjoint, linearize_edges, project_edges, relative_poses
+from .projective import Intrinsics, adjoint, edge_residuals, linearize_edges, relative_poses
 
 DT = torch.float64
 
@@ -47,6 +47,15 @@ def robust_cost(rn: torch.Tensor, loss: str, delta: float) -> torch.Tensor:
     if loss == "cauchy":
         return 0.5 * delta * delta * torch.log1p((rn / delta) ** 2)
     return 0.5 * rn * rn
+
+
+def observation_cost(r: torch.Tensor, valid: torch.Tensor, weight: torch.Tensor, loss: str,
+                     delta: float) -> float:
+    """Robust cost ``sum w rho(|r|)`` over valid observations: the one cost function of the BA
+    (:func:`assemble`'s cost at the linearisation point, :func:`evaluate_cost` for trial points and
+    :func:`motion_only`), so LM compares like with like. ``r (E,P,2)``, ``valid, weight (E,P)``."""
+    rn = torch.linalg.norm(r, dim=-1)
+    return float((weight * valid.to(DT) * robust_cost(rn, loss, delta)).sum())
 
 
 # ------------------------------------------------------------------------------- assembly
@@ -91,9 +100,8 @@ def assemble(T_cw: torch.Tensor, d: torch.Tensor, ii: torch.Tensor, jj: torch.Te
     target, weight = finite_targets(target, weight)
     lin = linearize_edges(T_cw, d, ii, jj, rays, target, K, need_ji=False)
     rn = torch.linalg.norm(lin.r, dim=-1)
-    W = weight * lin.valid.to(DT)
-    cost = float((W * robust_cost(rn, loss, delta)).sum())
-    W = W * robust_weight(rn, loss, delta)
+    cost = observation_cost(lin.r, lin.valid, weight, loss, delta)
+    W = weight * lin.valid.to(DT) * robust_weight(rn, loss, delta)
     nE = ii.shape[0]
     # Only J_j is formed: J_i = -J_j Adj(T_ji), so every i-block is an adjoint transform of a
     # j-block (H_ii = A^T H_jj A, H_ij = -A^T H_jj, v_i = -A^T v_j, E_i = -A^T E_j).
@@ -206,13 +214,55 @@ class BAResult:
     lam: float
     ne: Optional[NormalEquations] = None       #: linearisation at the final estimate
     history: list = field(default_factory=list)
+    fixed: Optional[torch.Tensor] = None       #: (M,) bool: the poses held fixed (the gauge)
 
 
 def evaluate_cost(T_cw, d, ii, jj, rays, target, weight, K, loss, delta) -> float:
-    uv, valid = project_edges(T_cw, d, ii, jj, rays, K)
-    rn = torch.linalg.norm(target - uv, dim=-1)
-    W = weight * (valid & (d[ii] > 0)).to(DT)
-    return float((W * robust_cost(rn, loss, delta)).sum())
+    """Robust cost at ``(T_cw, d)``: the same residuals, validity test (:func:`edge_residuals`) and
+    cost (:func:`observation_cost`) as :func:`assemble`, so a trial point's cost is comparable
+    with the cost of the linearisation point."""
+    r, valid = edge_residuals(T_cw, d, ii, jj, rays, target, K)
+    return observation_cost(r, valid, weight, loss, delta)
+
+
+GAUGE_MIN_BASELINE_FRAC = 0.03
+"""See :func:`gauge_mask`: a fixed pose must have at least this fraction of the window's largest
+baseline to the oldest pose to count as fixing the monocular scale. Small on purpose: with the two
+oldest poses held, the marginal depth std grows by ~10 % at 0.03 and ~50 % at 0.01 over the best
+gauge (4x at 0.003, meaningless at 0); in the synthetic room/street benchmarks the two oldest
+window poses always had >= 0.05 of the largest baseline, so normal operation is unchanged."""
+
+
+def gauge_mask(T_cw: torch.Tensor, n_fixed: int,
+               min_baseline_frac: float = GAUGE_MIN_BASELINE_FRAC) -> torch.Tensor:
+    """``(M,)`` bool: the window poses held fixed to remove the gauge (rigid motion and, with two
+    or more fixed poses, the monocular scale). ``T_cw (M,4,4)`` in window order (oldest first).
+
+    Normally the ``n_fixed`` oldest poses. Scale is only fixed if some fixed pose has a baseline to
+    the oldest one: when none of poses ``1..n_fixed-1`` has a baseline (camera centre distance) of
+    at least ``min_baseline_frac`` x the window's largest baseline to the oldest pose (the camera
+    panned in place: keyframes are triggered by flow, which rotation alone produces), the youngest
+    of them is replaced by the *oldest* pose that has. If no pose has a baseline at all (pure
+    rotation everywhere) the ``n_fixed`` oldest poses are kept. ``n_fixed >= M`` fixes all."""
+    M = T_cw.shape[0]
+    fixed = torch.zeros(M, dtype=torch.bool)
+    n = max(0, min(int(n_fixed), M))
+    fixed[:n] = True
+    if n < 2 or n >= M:
+        return fixed
+    R, t = T_cw[:, :3, :3], T_cw[:, :3, 3]
+    c = -(R.transpose(1, 2) @ t[..., None])[..., 0]          # camera centres
+    base = torch.linalg.norm(c - c[:1], dim=-1)                # baseline to the oldest pose
+    bmax = float(base[1:].max())
+    if not (bmax > 1e-9):                                       # no baseline anywhere (or NaN)
+        return fixed
+    ok = base >= min_baseline_frac * bmax
+    ok[0] = False
+    if bool(ok[1:n].any()):
+        return fixed
+    fixed[n - 1] = False
+    fixed[int(torch.nonzero(ok)[0, 0])] = True
+    return fixed
 
 
 def apply_update(T_cw: torch.Tensor, d: torch.Tensor, idx: torch.Tensor, dxi: torch.Tensor,
@@ -247,7 +297,9 @@ def bundle_adjust(T_cw: torch.Tensor, d: torch.Tensor, ii: torch.Tensor, jj: tor
     d_lo = torch.full_like(d, d_bounds[0])
     d_hi = torch.full_like(d, d_bounds[1])
     ne = assemble(T_cw, d, ii, jj, rays, target, weight, K, loss, delta)
-    cost0 = cost = ne.cost
+    # trial points are compared with the current point's cost computed the same way (the two
+    # agree exactly: assemble and evaluate_cost share edge_residuals and observation_cost)
+    cost0 = cost = evaluate_cost(T_cw, d, ii, jj, rays, target, weight, K, loss, delta)
     accepted = 0
     hist = [cost]
     it = 0
@@ -265,13 +317,12 @@ def bundle_adjust(T_cw: torch.Tensor, d: torch.Tensor, ii: torch.Tensor, jj: tor
             accepted += 1
             lam = max(lam / 5.0, 1e-7)
             ne = assemble(T_cw, d, ii, jj, rays, target, weight, K, loss, delta)
-            cost = ne.cost
             hist.append(cost)
             if rel < tol:
                 break
         else:
             lam = min(lam * 8.0, 1e4)
-    return BAResult(T_cw, d, cost0, cost, it, accepted, lam, ne, hist)
+    return BAResult(T_cw, d, cost0, cost, it, accepted, lam, ne, hist, fixed)
 
 
 def triangulate_grid(T_cw: torch.Tensor, ii: torch.Tensor, jj: torch.Tensor, rays: torch.Tensor,
@@ -287,8 +338,8 @@ def triangulate_grid(T_cw: torch.Tensor, ii: torch.Tensor, jj: torch.Tensor, ray
     cost = torch.zeros(nC, M, P, dtype=DT)
     for c in range(nC):              # C ~ 48 small batched evaluations (not a loop over pixels)
         d = torch.full((M, P), float(candidates[c]), dtype=DT)
-        uv, valid = project_edges(T_cw, d, ii, jj, rays, K)
-        rn = torch.linalg.norm(target - uv, dim=-1)
+        r, valid = edge_residuals(T_cw, d, ii, jj, rays, target, K)     # the BA's validity test
+        rn = torch.linalg.norm(r, dim=-1)
         pen = torch.where(valid, robust_cost(rn, loss, delta), torch.full_like(rn, 1e6))
         cost[c] = _onehot(ii, M) @ (weight * pen)
     best = candidates.to(DT)[cost.argmin(0)]               # (M,P)
@@ -353,6 +404,21 @@ class MotionResult:
     iters: int
 
 
+def depth_inflated_weight(weight: torch.Tensor, Jd: torch.Tensor,
+                          d_var: Optional[torch.Tensor]) -> torch.Tensor:
+    """Flow information reduced by the depth uncertainty at one linearisation:
+    ``1/w <- 1/w + |J_d|^2 var_d`` (``w / (1 + w |J_d|^2 var_d)``); pixels whose depth variance is
+    infinite (or NaN: unknown) get weight 0 whatever ``J_d`` (at zero baseline ``J_d = 0`` would
+    otherwise give them full weight). ``weight (N,P)``, ``Jd (N,P,2)``, ``d_var (N,P)`` or None."""
+    if d_var is None:
+        return weight
+    var = d_var.to(weight.dtype)
+    known = torch.isfinite(var)
+    jv = (Jd ** 2).sum(-1) * torch.where(known, var.clamp_min(0.0), torch.zeros_like(var))
+    w = weight / (1.0 + weight * jv)
+    return torch.where(known & (weight > 0), w, torch.zeros_like(weight))
+
+
 def motion_only(T_kf: torch.Tensor, d_kf: torch.Tensor, rays: torch.Tensor, target: torch.Tensor,
                 weight: torch.Tensor, K: Intrinsics, T_init: torch.Tensor, iters: int = 8,
                 loss: str = "huber", delta: float = 2.0,
@@ -360,32 +426,25 @@ def motion_only(T_kf: torch.Tensor, d_kf: torch.Tensor, rays: torch.Tensor, targ
     """Pose-only Gauss-Newton (LM-damped) of one frame against ``N`` keyframes with fixed poses and
     depths. ``T_kf (N,4,4)`` ``T_cw``, ``d_kf (N,P)``, ``target (N,P,2)``, ``weight (N,P)``
     information (1/px^2). ``d_var (N,P)``: optional inverse-depth variances of the keyframes; the
-    depth error they cause is added to the flow noise (``1/w <- 1/w + |J_d|^2 var``, evaluated at
-    ``T_init``), so pixels with unknown depth do not pull the pose."""
+    depth error they cause is added to the flow noise (``1/w <- 1/w + |J_d|^2 var``, re-evaluated
+    at every iteration's linearisation point, see :func:`depth_inflated_weight`), so pixels with
+    unknown depth do not pull the pose, also when the initial guess has no baseline to the
+    keyframe. Within one iteration the current and the trial cost use the same weights."""
     N = T_kf.shape[0]
     target, weight = finite_targets(target, weight)
-    if d_var is not None:
-        ii0 = torch.arange(N)
-        jj0 = torch.full((N,), N, dtype=torch.long)
-        T0 = torch.cat([T_kf.to(DT), T_init.to(DT)[None]], 0)
-        d0 = torch.cat([d_kf.to(DT), torch.zeros_like(d_kf[:1], dtype=DT)], 0)
-        lin0 = linearize_edges(T0, d0, ii0, jj0, rays, target, K, need_ji=False)
-        jd2 = (lin0.Jd ** 2).sum(-1)
-        var = torch.nan_to_num(d_var.to(DT), nan=1e30, posinf=1e30)
-        weight = torch.where(weight > 0, 1.0 / (1.0 / weight.clamp_min(1e-30) + jd2 * var),
-                             torch.zeros_like(weight))
+    weight = weight.to(DT)
     ii = torch.arange(N)
     jj = torch.full((N,), N, dtype=torch.long)
     T = torch.cat([T_kf.to(DT), T_init.to(DT)[None]], 0)
     lam = 1e-4
     dpad = torch.cat([d_kf.to(DT), torch.zeros_like(d_kf[:1], dtype=DT)], 0)
-    cost = evaluate_cost(T, dpad, ii, jj, rays, target, weight, K, loss, delta)
-    H = torch.zeros(6, 6, dtype=DT)
     it = 0
     for it in range(1, iters + 1):
         lin = linearize_edges(T, dpad, ii, jj, rays, target, K, need_ji=False)
+        w_it = depth_inflated_weight(weight, lin.Jd, d_var)     # weights of this iteration
+        cost = observation_cost(lin.r, lin.valid, w_it, loss, delta)
         rn = torch.linalg.norm(lin.r, dim=-1)
-        W = weight * lin.valid.to(DT) * robust_weight(rn, loss, delta)
+        W = w_it * lin.valid.to(DT) * robust_weight(rn, loss, delta)
         Jj = lin.Jj.reshape(-1, 2, 6)
         Wf = W.reshape(-1)
         WJ = Jj * Wf[:, None, None]
@@ -398,9 +457,9 @@ def motion_only(T_kf: torch.Tensor, d_kf: torch.Tensor, rays: torch.Tensor, targ
             break
         Tn = T.clone()
         Tn[N] = se3_exp(dxi) @ T[N]
-        new_cost = evaluate_cost(Tn, dpad, ii, jj, rays, target, weight, K, loss, delta)
+        new_cost = evaluate_cost(Tn, dpad, ii, jj, rays, target, w_it, K, loss, delta)
         if new_cost <= cost:
-            T, cost = Tn, new_cost
+            T = Tn
             lam = max(lam / 5, 1e-7)
             if float(dxi.norm()) < 1e-7:
                 break
@@ -409,8 +468,10 @@ def motion_only(T_kf: torch.Tensor, d_kf: torch.Tensor, rays: torch.Tensor, targ
             if lam > 1e4:
                 break
     lin = linearize_edges(T, dpad, ii, jj, rays, target, K, need_ji=False)
+    w_fin = depth_inflated_weight(weight, lin.Jd, d_var)
+    cost = observation_cost(lin.r, lin.valid, w_fin, loss, delta)
     rn = torch.linalg.norm(lin.r, dim=-1)
-    Wv = weight * lin.valid.to(DT)
+    Wv = w_fin * lin.valid.to(DT)
     sw = float(Wv.sum())
     rms = float(torch.sqrt((Wv * rn * rn).sum() / max(sw, 1e-12))) if sw > 0 else float("inf")
     inl = float((Wv * (rn <= delta).to(DT)).sum() / max(sw, 1e-12)) if sw > 0 else 0.0

@@ -87,15 +87,51 @@ class EdgeLinearization(NamedTuple):
 
 def project_edges(T_cw: torch.Tensor, d: torch.Tensor, ii: torch.Tensor, jj: torch.Tensor,
                   rays: torch.Tensor, K: Intrinsics) -> tuple[torch.Tensor, torch.Tensor]:
-    """Induced flow: where each grid pixel of ``i`` lands in ``j``. Returns ``(uv_j (E,P,2), valid)``."""
+    """Induced flow: where each grid pixel of ``i`` lands in ``j``. Returns ``(uv_j (E,P,2), valid)``.
+
+    A geometric prediction (flow initialisation, edge selection, keyframe distance) with a loose
+    validity test; BA costs use :func:`edge_residuals` (the test of :func:`linearize_edges`)."""
     q = transform_h(relative_poses(T_cw, ii, jj), rays, d[ii])
     valid = (q[..., 2] > 1e-6 * torch.clamp(d[ii], min=1e-12)) & (q[..., 2] > 0)
     return project(q, K), valid
 
 
+MIN_DEPTH_RATIO = 1e-3
+"""A BA observation is usable only when the point lies in front of camera ``j`` by more than this
+fraction of its depth in ``i`` (``z_j > MIN_DEPTH_RATIO * d_i`` in ``q`` units) and ``d_i > 0``."""
+
+
+def _edge_projection(T_ji: torch.Tensor, rays: torch.Tensor, di: torch.Tensor, target: torch.Tensor,
+                     K: Intrinsics, min_depth_ratio: float):
+    """Shared by :func:`edge_residuals` and :func:`linearize_edges` (so the BA's trial cost and its
+    linearisation use one validity test and bit-identical residuals): ``(q, xp, yp, iz, r, valid)``;
+    ``r`` is 0 where not valid."""
+    q = transform_h(T_ji, rays, di)               # (E,P,3)
+    X, Y, Z = q[..., 0], q[..., 1], q[..., 2]
+    # a point is usable when it lies in front of camera j with positive inverse depth
+    valid = (Z > min_depth_ratio * di.abs().clamp_min(1e-12)) & (di > 0) & torch.isfinite(Z)
+    Zs = torch.where(valid, Z, torch.ones_like(Z))
+    iz = 1.0 / Zs
+    xp, yp = X * iz, Y * iz
+    r = target - torch.stack([K.fx * xp + K.cx, K.fy * yp + K.cy], -1)
+    r = torch.where(valid[..., None], r, torch.zeros_like(r))
+    return q, xp, yp, iz, r, valid
+
+
+def edge_residuals(T_cw: torch.Tensor, d: torch.Tensor, ii: torch.Tensor, jj: torch.Tensor,
+                   rays: torch.Tensor, target: torch.Tensor, K: Intrinsics,
+                   min_depth_ratio: float = MIN_DEPTH_RATIO) -> tuple[torch.Tensor, torch.Tensor]:
+    """Residuals ``r = u* - pi(q)`` ``(E,P,2)`` (0 where not valid) and validity ``(E,P)``, exactly
+    as :func:`linearize_edges` computes them, without the Jacobians (the BA's cost evaluation)."""
+    _, _, _, _, r, valid = _edge_projection(relative_poses(T_cw, ii, jj), rays, d[ii], target, K,
+                                            min_depth_ratio)
+    return r, valid
+
+
 def linearize_edges(T_cw: torch.Tensor, d: torch.Tensor, ii: torch.Tensor, jj: torch.Tensor,
                     rays: torch.Tensor, target: torch.Tensor, K: Intrinsics,
-                    min_depth_ratio: float = 1e-3, need_ji: bool = True) -> EdgeLinearization:
+                    min_depth_ratio: float = MIN_DEPTH_RATIO,
+                    need_ji: bool = True) -> EdgeLinearization:
     """Residuals and analytic Jacobians of ``pi(T_j T_i^-1 X_i(d))`` for all edges at once.
 
     ``T_cw (M,4,4)``, ``d (M,P)`` inverse depths, ``ii, jj (E,)`` keyframe indices, ``rays (P,3)``,
@@ -106,17 +142,9 @@ def linearize_edges(T_cw: torch.Tensor, d: torch.Tensor, ii: torch.Tensor, jj: t
     """
     T_ji = relative_poses(T_cw, ii, jj)
     di = d[ii]                                    # (E,P)
-    q = transform_h(T_ji, rays, di)               # (E,P,3)
-    X, Y, Z = q[..., 0], q[..., 1], q[..., 2]
-    # a point is usable when it lies in front of camera j with positive inverse depth
-    valid = (Z > min_depth_ratio * di.abs().clamp_min(1e-12)) & (di > 0) & torch.isfinite(Z)
-    Zs = torch.where(valid, Z, torch.ones_like(Z))
-    iz = 1.0 / Zs
-    xp, yp = X * iz, Y * iz
-    r = target - torch.stack([K.fx * xp + K.cx, K.fy * yp + K.cy], -1)
-    r = torch.where(valid[..., None], r, torch.zeros_like(r))
+    q, xp, yp, iz, r, valid = _edge_projection(T_ji, rays, di, target, K, min_depth_ratio)
     a, b = K.fx * iz, K.fy * iz
-    zero = torch.zeros_like(Z)
+    zero = torch.zeros_like(iz)
     ju = torch.stack([a * di, zero, -a * xp * di, -K.fx * xp * yp, K.fx * (1 + xp * xp), -K.fx * yp], -1)
     jv = torch.stack([zero, b * di, -b * yp * di, -K.fy * (1 + yp * yp), K.fy * xp * yp, K.fy * xp], -1)
     Jj = torch.stack([ju, jv], -2)                                  # (E,P,2,6)

@@ -832,7 +832,7 @@ class Frontend:
         # the frame's pose is the BA pose of its keyframe
         self._last = (new.stamp, new.T_cw.clone())
         est = self._record(new.stamp, new.stamp, new.T_cw.numpy(), "tracking", True)
-        self._after_window_change(res.ne)
+        self._after_window_change(res.ne, res.fixed)
         self.reason = (f"tracking: keyframe {new.index} added ({len(self.window)} in window, "
                        f"{len(self.graph)} edges)")
         return est
@@ -852,9 +852,11 @@ class Frontend:
         T = torch.stack([k.T_cw for k in self.window])
         d = torch.stack([k.d for k in self.window])
         t = time.perf_counter()
-        n_fixed = min(cfg.fixed_poses, len(self.window) - 1)
+        # gauge: the oldest poses, with a baseline among them where the window has one
+        # (BA.gauge_mask); the depth variances use the same gauge (_after_window_change)
+        fixed = BA.gauge_mask(T, min(cfg.fixed_poses, len(self.window) - 1))
         res = BA.bundle_adjust(T, d, ii, jj, self.rays, tg, wt * self.info_scale, self.K,
-                               n_fixed=n_fixed, iters=iters, loss=cfg.robust_loss,
+                               n_fixed=0, fixed_mask=fixed, iters=iters, loss=cfg.robust_loss,
                                delta=cfg.robust_delta_px, lam=cfg.lm_lambda,
                                d_bounds=self._d_bounds(d))
         self.stats["t_ba"] += time.perf_counter() - t
@@ -867,8 +869,10 @@ class Frontend:
             self._set_kf_pose(k.stamp, Tk.numpy().copy())
         return res
 
-    def _after_window_change(self, r_ne: Optional[BA.NormalEquations]) -> None:
-        """Uncertainty, pose-system export, window sliding and emission after a BA."""
+    def _after_window_change(self, r_ne: Optional[BA.NormalEquations],
+                             fixed: Optional[torch.Tensor] = None) -> None:
+        """Uncertainty, pose-system export, window sliding and emission after a BA (``fixed``: the
+        BA's gauge, reused for the depth variances)."""
         cfg = self.cfg
         stamps = [k.stamp for k in self.window]
         if r_ne is None:
@@ -879,9 +883,14 @@ class Frontend:
                                cfg.robust_loss, cfg.robust_delta_px)
         T = torch.stack([k.T_cw for k in self.window])
         self.pose_system = BA.reduced_pose_system(r_ne, T, stamps)
-        # the monocular gauge (incl. scale) is fixed by the two oldest poses, also for the 2-view
-        # initialisation whose BA left the second pose free (scale held by damping)
-        free = torch.arange(max(2, cfg.fixed_poses), len(self.window))
+        # the monocular gauge (incl. scale) is fixed by the window BA's fixed poses (the oldest
+        # ones, with a baseline among them: BA.gauge_mask), also for the 2-view initialisation
+        # whose BA left the second pose free (scale held by damping): at least two fixed poses
+        n_gauge = max(2, cfg.fixed_poses)
+        if fixed is None or fixed.shape[0] != len(self.window) or int(fixed.sum()) < min(
+                n_gauge, len(self.window)):
+            fixed = BA.gauge_mask(T, n_gauge)
+        free = torch.nonzero(~fixed)[:, 0]
         var = window_inv_depth_var(r_ne, free)
         for k, v in zip(self.window, var):
             k.var = v.clone()
