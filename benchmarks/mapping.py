@@ -240,7 +240,7 @@ def _relative_to_off(res: dict) -> None:
 
 
 def exp_score(a, cfg: MapperConfig, base: dict | None) -> dict:
-    seq = SimSequence(a.score_scene, a.score_frames, a.width, a.height)
+    seq = SimSequence(a.score_scene, a.score_frames, a.width, a.height, seed=a.score_seed)
     kf, novel = split_views(seq.n, a.kf_every, a.max_novel)
     res = {}
     variants = [("off", replace(cfg, score_manager=False))]
@@ -254,6 +254,10 @@ def exp_score(a, cfg: MapperConfig, base: dict | None) -> dict:
     variants += [(f"{v:g}_all", replace(cfg, score_manager=True, sc_storage=v, prune_window_owned_only=False,
                                         sc_storage_per_view=False))
                  for v in a.sc_storage_all]
+    # the per-view rule sparing the Gaussians where the render is still wrong
+    variants += [(f"{v:g}_spare", replace(cfg, score_manager=True, sc_storage=v, sc_storage_per_view=True,
+                                          prune_window_owned_only=True, prune_spare_high_error=True))
+                 for v in a.sc_storage_spare]
     for name, c in variants:
         m, st = run_mapping(seq, c, kf, tag=f"score[{name}]")
         ek = eval_views(m, seq, kf)
@@ -272,7 +276,7 @@ def exp_score(a, cfg: MapperConfig, base: dict | None) -> dict:
         if name != "off":
             if off["psnr_keyframes_surface_db"] is not None and r["psnr_keyframes_surface_db"] is not None:
                 r["psnr_surface_loss_db"] = off["psnr_keyframes_surface_db"] - r["psnr_keyframes_surface_db"]
-    return {"scene": a.score_scene, "frames": seq.n, "keyframes": len(kf), "variants": res}
+    return {"scene": a.score_scene, "seed": a.score_seed, "frames": seq.n, "keyframes": len(kf), "variants": res}
 
 
 def exp_score_frontend(a, cfg: MapperConfig) -> dict:
@@ -603,12 +607,16 @@ def main(argv=None) -> int:
     p.add_argument("--score-frames", type=int, default=100)
     p.add_argument("--score-scene", choices=("room", "street"), default="room",
                    help="simulator scene of the score-manager ablation")
+    p.add_argument("--score-seed", type=int, default=0,
+                   help="simulator seed of the score-manager scene (another layout and textures)")
     p.add_argument("--sc-storage", default="1,1.6,2")
     p.add_argument("--sc-storage-sum", default="4,6",
                    help="sc_storage values run with S_C summed over the window (sc_storage_per_view=False)")
     p.add_argument("--sc-storage-all", default="",
                    help="sc_storage values run with the paper's rule: window sum on every Gaussian "
                         "(sc_storage_per_view=False, prune_window_owned_only=False)")
+    p.add_argument("--sc-storage-spare", default="",
+                   help="sc_storage values run sparing high-error Gaussians (prune_spare_high_error=True)")
     p.add_argument("--pose-frames", type=int, default=100)
     p.add_argument("--pose-source", default=None,
                    help="pose_frontend / score_frontend on this recording (any source with ground truth) "
@@ -634,7 +642,7 @@ def main(argv=None) -> int:
                         "run; numba uses its own). The OpenMP environment (OMP_WAIT_POLICY) is left as "
                         "the caller set it: forcing PASSIVE made mapping 10-40 %% slower here")
     a = p.parse_args(argv)
-    for name in ("sc_storage", "sc_storage_all", "sc_storage_sum"):
+    for name in ("sc_storage", "sc_storage_all", "sc_storage_sum", "sc_storage_spare"):
         try:
             setattr(a, name, [float(v) for v in getattr(a, name).split(",") if v.strip()])
         except ValueError:

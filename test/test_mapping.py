@@ -98,6 +98,14 @@ def test_window_slots_give_sum_max_and_argmax_id():
     assert torch.allclose(s_e, torch.tensor([0.5, 0.0, 0.2, 0.1]))
 
 
+def test_error_density_is_the_mean_error_under_a_gaussian():
+    # window contributions c_t and errors e_t = sum L(u) alpha T of 3 Gaussians over 2 slots
+    wc = torch.tensor([[2.0, 2.0], [1.0, 0.0], [0.0, 0.0]])
+    we = torch.tensor([[0.2, 0.6], [0.5, 0.0], [0.0, 0.0]])
+    assert torch.allclose(S.error_density(wc, we), torch.tensor([0.2, 0.5, 0.0]))
+    assert S.error_density(torch.zeros(2, 0), torch.zeros(2, 0)).tolist() == [0.0, 0.0]
+
+
 def test_status_and_storage_transitions():
     stable = torch.tensor([False, False, True, True, False, False])
     s_c = torch.tensor([0.0, 5.0, 0.0, 3.0, 0.2, 0.0])
@@ -113,6 +121,8 @@ def test_status_and_storage_transitions():
     # a Gaussian whose best view (ID(g)) has left the window is not judged by the window's sum
     owned = torch.tensor([True, True, True, True, False, True])
     assert not S.storage_control(stable, s_c, judged, 0.5, 1e-4, owned).any()
+    # a Gaussian where the render is still wrong is spared (the detail being fitted)
+    assert not S.storage_control(stable, s_c, judged, 0.5, 1e-4, spared=torch.tensor([False] * 4 + [True, False])).any()
     wc, we, since = s_c[:, None].repeat(1, 2), s_e[:, None].repeat(1, 2), torch.zeros(6, dtype=torch.int64)
     S.reset_scores(wc, we, since, to_unstable, 123)
     assert (wc[2] == 0).all() and (we[2] == 0).all() and since[2] == 123 and since[0] == 0 and wc[1, 0] == 5.0
@@ -133,6 +143,39 @@ def test_score_manager_in_mapper_freezes_and_prunes(room_small):
     # frozen Gaussians keep their ID(g) among the added keyframes
     assert set(torch.unique(m.gm.kf_id).tolist()) <= {frames[i].stamp_ns for i in (0, 1, 6, 7)}
     assert m.gm.stable.any()
+
+
+def test_storage_control_spares_gaussians_where_the_render_is_wrong(room_small, monkeypatch):
+    # prune_spare_high_error: the mapper passes storage control the Gaussians whose window error per
+    # contribution exceeds the window keyframes' mean L1, and none of them is pruned
+    cam, frames = room_small
+    seen = []
+    orig = S.storage_control
+
+    def spy(*args, **kw):
+        out = orig(*args, **kw)
+        spared = args[6] if len(args) > 6 else kw.get("spared")
+        seen.append((spared, orig(*args[:6]), out))
+        return out
+    monkeypatch.setattr(S, "storage_control", spy)
+    pruned = {}
+    for spare in (False, True):
+        seen.clear()
+        cfg = MapperConfig(points_per_keyframe=1500, delta_status=20, delta_storage=10, min_score_age=5,
+                           sc_storage=5.0, window_size=2, iters_per_keyframe=10, sample_ratio=1.0,
+                           prune_spare_high_error=spare)
+        m = Mapper(cfg)
+        for i in (0, 1, 2):
+            m.add_keyframe(frames[i])
+            m.train()
+        pruned[spare] = m.counters["pruned"]
+        if spare:
+            assert seen and all(sp is not None for sp, _, _ in seen)
+            assert any(bool((sp & base).any()) for sp, base, _ in seen)   # some would have been pruned
+            assert all(not bool((sp & out).any()) for sp, _, out in seen)  # none of them is
+        else:
+            assert all(sp is None for sp, _, _ in seen)
+    assert 0 < pruned[True] < pruned[False]
 
 
 # ----------------------------------------------------------------------------- sparse Adam

@@ -78,6 +78,10 @@ class MapperConfig:
                                        # contribution is >= this x the Gaussian's best window view
     prune_window_owned_only: bool = True  # storage control prunes only Gaussians whose ID(g) is a
                                        # window keyframe (False: the paper's rule on every Gaussian)
+    prune_spare_high_error: bool = False  # storage control spares Gaussians whose window error per
+                                       # contribution (sum e_t / sum c_t) exceeds the window keyframes'
+                                       # mean L1 (small splats where the render is still wrong);
+                                       # measured, not yet the default (docs/mapping.md)
 
     # ---- storage tiers (paper "GPU-CPU transfer")
     delta_k: int = 8                   # tier update every n keyframes

@@ -765,7 +765,12 @@ class Mapper:
                 win = torch.tensor([x for x in self._slots if x != -1], dtype=gm.kf_id.dtype, device=gm.kf_id.device)
                 owned = torch.isin(gm.kf_id, win)
             s_store = S.per_view_contribution(gm.win_c, cfg.sc_view_floor) if cfg.sc_storage_per_view else s_c
-            prune = S.storage_control(gm.stable, s_store, judged, cfg.sc_storage, cfg.sc_status, owned)
+            spared = None
+            if cfg.prune_spare_high_error and self._loss_maps:
+                # the window keyframes' mean L1 error (their latest training renders)
+                ref = float(np.mean([float(lm.mean()) for lm in self._loss_maps.values()]))
+                spared = S.error_density(gm.win_c, gm.win_e) > ref
+            prune = S.storage_control(gm.stable, s_store, judged, cfg.sc_storage, cfg.sc_status, owned, spared)
             n = int(prune.sum())
             if n:
                 self.gm = gm.remove(prune)

@@ -40,6 +40,16 @@ def per_view_contribution(win_c: torch.Tensor, view_floor: float = 0.1) -> torch
     return (win_c * seen).sum(1) / seen.sum(1).clamp_min(1).to(win_c.dtype)
 
 
+def error_density(win_c: torch.Tensor, win_e: torch.Tensor) -> torch.Tensor:
+    """Mean per-pixel colour error under each Gaussian over the window, (N,): ``sum_t e_t / sum_t
+    c_t`` (the L1 error of the pixels it covers, weighted by its ``alpha T`` there; 0 where no
+    window keyframe sees it)."""
+    if win_c.shape[1] == 0:
+        return torch.zeros(win_c.shape[0], dtype=win_c.dtype, device=win_c.device)
+    c = win_c.sum(1)
+    return torch.where(c > 0, win_e.sum(1) / c.clamp_min(1e-30), torch.zeros_like(c))
+
+
 def record_render(win_c: torch.Tensor, win_e: torch.Tensor, kf_id: torch.Tensor, id_score: torch.Tensor,
                   slot: int, contrib: torch.Tensor, error: torch.Tensor, stamp_ns: int) -> None:
     """In place: store one render's per-Gaussian contribution/error of keyframe ``stamp_ns`` in its
@@ -78,7 +88,8 @@ def status_control(stable: torch.Tensor, s_c: torch.Tensor, s_e: torch.Tensor, j
 
 def storage_control(stable: torch.Tensor, s_c: torch.Tensor, judged: torch.Tensor,
                     sc_storage: float, sc_status: float = 0.0,
-                    owned_by_window: torch.Tensor | None = None) -> torch.Tensor:
+                    owned_by_window: torch.Tensor | None = None,
+                    spared: torch.Tensor | None = None) -> torch.Tensor:
     """Prune mask: unstable Gaussians, judged, with ``sc_status <= S_C < sc_storage`` (seen by the
     window but contributing little).
 
@@ -90,9 +101,15 @@ def storage_control(stable: torch.Tensor, s_c: torch.Tensor, judged: torch.Tenso
     ``owned_by_window`` (optional bool mask): only these Gaussians may be pruned, i.e. those whose
     ID(g) (best view so far) is a window keyframe. A Gaussian whose best view has left the window
     mostly serves that older view; a low window sum then says little about its worth.
+
+    ``spared`` (optional bool mask): never pruned, e.g. Gaussians where the render is still wrong
+    (:func:`error_density` above the window's mean error): there the small splats are the detail
+    being fitted (fine texture, edges), and removing them costs PSNR that no neighbour recovers.
     """
     prune = (~stable) & judged & (s_c >= sc_status) & (s_c < sc_storage)
-    return prune if owned_by_window is None else prune & owned_by_window
+    if owned_by_window is not None:
+        prune &= owned_by_window
+    return prune if spared is None else prune & ~spared
 
 
 def reset_scores(win_c: torch.Tensor, win_e: torch.Tensor, score_since: torch.Tensor,
