@@ -191,3 +191,21 @@ def test_older_stacked_checkpoint_layout_still_loads(tmp_path):
     _assert_maps_equal(m.all_gaussians(), m2.all_gaussians())
     m.close()
     m2.close()
+
+
+def test_point_sample_matches_the_gathered_map_without_gathering_it(tmp_path):
+    # the mapper node's point-cloud preview: the same evenly spread rows as indexing all_gaussians()
+    m = _spilled_mapper(tmp_path, chunks=6, n=3000)
+    m.gm = _random_map(2000, seed=99, owners=(50,))
+    allg = m.all_gaussians()
+    n = len(allg)
+    for k in (0, 1, 7, 5000, n, n + 10):
+        xyz, rgb = m.point_sample(k)
+        idx = np.linspace(0, n - 1, min(n, k)).round().astype(int) if k > 0 else np.zeros(0, int)
+        assert np.array_equal(xyz, allg.means[idx].numpy())
+        ref = np.clip(allg.sh[idx, 0, :].numpy() * 0.28209479177387814 + 0.5, 0, 1)
+        assert np.allclose(rgb, ref, atol=1e-7) and xyz.dtype == np.float32 and rgb.shape == xyz.shape
+    m.close()
+    big = _spilled_mapper(tmp_path / "big", chunks=24, n=4000)        # ~22 MiB spilled
+    assert _peak_mb(lambda: big.point_sample(5000)) < 0.4 * big.passive.disk_bytes / 2**20
+    big.close()

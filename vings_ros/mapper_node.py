@@ -246,15 +246,9 @@ class MapperNode(Node):
         self.pub_normal.publish(image_to_msg(nrm, stamp, frame, T.RENDER_NORMAL_TOPIC))
 
     def _publish_points(self, stamp: int) -> None:
-        gm = self.mapper.all_gaussians()
-        n = len(gm)
-        if n == 0:
+        if self.mapper.num_gaussians == 0:
             return
-        idx = np.arange(n)
-        if n > self.ncfg.max_points:
-            idx = np.linspace(0, n - 1, self.ncfg.max_points).round().astype(int)
-        xyz = gm.means.detach()[idx].cpu().numpy()
-        rgb = np.clip(gm.sh.detach()[idx, 0, :].cpu().numpy() * 0.28209479177387814 + 0.5, 0, 1)
+        xyz, rgb = self.mapper.point_sample(self.ncfg.max_points)
         self.pub_points.publish(points_to_pointcloud2(xyz, (rgb * 255).astype(np.uint8), stamp,
                                                       self.ncfg.world_frame))
 

@@ -38,7 +38,7 @@ from ..types import CameraModel, Keyframe
 from ..util import NPZ_READ_ERRORS, atomic_write, log
 from . import scores as S
 from .config import MapperConfig
-from .gaussians import ALL_FIELDS, PARAM_FIELDS, GaussianMap, quat_multiply
+from .gaussians import ALL_FIELDS, PARAM_FIELDS, GaussianMap, quat_multiply, sh_dc_to_rgb
 from .history import FIELDS as HISTORY_FIELDS, HistoryStore, compact_keyframe, expand_keyframe
 from .init import depth_normals, empty_mask, fill_depth, gaussians_from_pixels, num_to_add, sample_pixels, usable_depth_mask
 from .losses import (accumulation_loss, depth_loss, depth_weight, l1_map, normal_loss, normals_from_depth,
@@ -245,6 +245,27 @@ class Mapper:
         """Active and passive Gaussians in one map (passive ones moved by pending pose changes)."""
         extra = self.passive.all(self._poses)
         return self.gm if extra is None else GaussianMap.concat([self.gm, extra.to(self.device)])
+
+    def point_sample(self, max_points: int) -> tuple[np.ndarray, np.ndarray]:
+        """Up to ``max_points`` Gaussians spread evenly over the whole map (active, then passive ones
+        moved by pending pose changes, in :meth:`all_gaussians` order): centres ``(M, 3)`` float32
+        (world, m) and DC colours ``(M, 3)`` RGB in [0, 1]. The passive store is read one chunk
+        at a time, so a preview of a long run's map does not gather it in memory."""
+        n = self.num_gaussians
+        if n == 0 or max_points <= 0:
+            return np.zeros((0, 3), np.float32), np.zeros((0, 3), np.float32)
+        want = np.linspace(0, n - 1, min(n, int(max_points))).round().astype(np.int64)
+        xyz, rgb, off = [], [], 0
+        for part in itertools.chain((self.gm,), self.passive.iter_moved(self._poses)):
+            sel = want[(want >= off) & (want < off + len(part))] - off
+            off += len(part)
+            if len(sel):
+                idx = torch.from_numpy(sel)
+                xyz.append(part.means.detach()[idx].cpu().numpy().astype(np.float32))
+                rgb.append(sh_dc_to_rgb(part.sh.detach()[idx, 0, :]).clamp(0, 1).cpu().numpy().astype(np.float32))
+        if not xyz:
+            return np.zeros((0, 3), np.float32), np.zeros((0, 3), np.float32)
+        return np.concatenate(xyz), np.concatenate(rgb)
 
     def save_ply(self, path: str | os.PathLike) -> None:
         """Write every Gaussian (active + passive) as a viewer-compatible ``map.ply``."""
