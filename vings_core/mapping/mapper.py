@@ -256,7 +256,7 @@ class Mapper:
             return np.zeros((0, 3), np.float32), np.zeros((0, 3), np.float32)
         want = np.linspace(0, n - 1, min(n, int(max_points))).round().astype(np.int64)
         xyz, rgb, off = [], [], 0
-        for part in itertools.chain((self.gm,), self.passive.iter_moved(self._poses)):
+        for part in self._map_parts():
             sel = want[(want >= off) & (want < off + len(part))] - off
             off += len(part)
             if len(sel):
@@ -271,8 +271,12 @@ class Mapper:
         """Write every Gaussian (active + passive) as a viewer-compatible ``map.ply``."""
         from .ply import write_ply
         # chunk by chunk: the passive store (spilled to disk in a long run) is not gathered in memory
-        write_ply(path, lambda: itertools.chain((self.gm,), self.passive.iter_moved(self._poses)),
-                  sh_degree=self.cfg.sh_degree)
+        write_ply(path, self._map_parts, sh_degree=self.cfg.sh_degree)
+
+    def _map_parts(self):
+        """The active map, then the passive store one chunk at a time (moved by pending pose
+        changes): :meth:`all_gaussians` without gathering it."""
+        return itertools.chain((self.gm,), self.passive.iter_moved(self._poses))
 
     def update_tiers(self, T_wc_now: np.ndarray) -> dict:
         """Storage tiers: Gaussians whose ID(g) keyframe is within ``tau`` of the camera are active

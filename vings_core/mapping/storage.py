@@ -13,6 +13,7 @@ rigidly by the pose change when they come back (paper eq. loop correction).
 """
 from __future__ import annotations
 
+import contextlib
 import itertools
 import os
 import shutil
@@ -79,11 +80,10 @@ def _process_identity(pid: int) -> Optional[str]:
     """``"host pid start"`` of a live process (start: its start time from ``/proc``, so a reused pid
     is not mistaken for the owner; empty where ``/proc`` is missing), None when it is not running."""
     try:
-        os.kill(pid, 0)
+        with contextlib.suppress(PermissionError):     # alive, another user's process
+            os.kill(pid, 0)
     except ProcessLookupError:
         return None
-    except PermissionError:
-        pass                       # alive, another user's
     try:
         with open(f"/proc/{pid}/stat", "rb") as f:
             start = f.read().rsplit(b")", 1)[1].split()[19].decode()
@@ -304,7 +304,8 @@ class PassiveStore:
 
     def all(self, poses: dict[int, np.ndarray]) -> Optional[GaussianMap]:
         """Every stored Gaussian (copies, moved by pose changes), the store unchanged."""
-        return self.take(lambda o: np.ones(len(o), dtype=bool), poses, remove=False)
+        parts = list(self.iter_moved(poses))
+        return GaussianMap.concat(parts) if parts else None
 
     def stored_chunks(self):
         """The store as stored, one chunk at a time (a spilled chunk is read only while it is
