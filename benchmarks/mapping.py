@@ -353,7 +353,7 @@ def exp_pose(a, cfg: MapperConfig) -> dict:
     kf, novel = split_views(seq.n, a.kf_every, a.max_novel)
     noisy = _noisy_poses(seq, kf, a.noise_trans, a.noise_rot, seed=1)
     res = {}
-    for mode in ("none", "single", "multi"):
+    for mode in a.pose_modes:
         c = replace(cfg, refine_mode=mode)
         m, st = run_mapping(seq, c, kf, poses=noisy, refine=mode != "none", tag=f"pose[{mode}]")
         if mode == "none":
@@ -364,9 +364,8 @@ def exp_pose(a, cfg: MapperConfig) -> dict:
         log(f"pose[{mode}]:", res[mode])
         m.close()
     return {"frames": seq.n, "keyframes": len(kf), "noise": {"trans_m": a.noise_trans, "rot_deg": a.noise_rot},
-            "refine_iters_per_keyframe": cfg.refine_iters, "results": res,
-            "multi_beats_single": res["multi"]["ate_rmse_m"] < res["single"]["ate_rmse_m"],
-            "multi_beats_none": res["multi"]["ate_rmse_m"] < res["none"]["ate_rmse_m"]}
+            "refine_iters_per_keyframe": cfg.refine_iters, "refine_solver": cfg.refine_solver, "results": res,
+            **_multi_beats(res, "ate_rmse_m")}
 
 
 # ------------------------------------------------------------------ front-end poses and depth
@@ -479,7 +478,7 @@ def exp_pose_frontend(a, cfg: MapperConfig) -> dict:
     if a.pose_outdoor:
         cfg = replace(cfg, outdoor=True)
     res = {"initial": _errors_vs_gt({k.stamp_ns: k.T_wc.numpy() for k in kfs}, gt)}
-    for mode in ("none", "single", "multi"):
+    for mode in a.pose_modes:
         c = replace(cfg, refine_mode=mode)
         m, st = run_mapping(None, c, None, refine=mode != "none", tag=f"pose_fe[{mode}]",
                             keyframes=[replace(k, T_wc=k.T_wc.clone()) for k in kfs])
@@ -490,9 +489,14 @@ def exp_pose_frontend(a, cfg: MapperConfig) -> dict:
         log(f"pose_fe[{mode}]:", res[mode])
         m.close()
     return {"source": a.pose_source or "room", "frames": a.pose_frames, "keyframes": len(kfs),
-            "width": kfs[0].camera.width, "height": kfs[0].camera.height, "results": res,
-            "multi_beats_single": res["multi"]["ate_sim3_m"] < res["single"]["ate_sim3_m"],
-            "multi_beats_none": res["multi"]["ate_sim3_m"] < res["none"]["ate_sim3_m"]}
+            "width": kfs[0].camera.width, "height": kfs[0].camera.height, "refine_solver": cfg.refine_solver,
+            "results": res, **_multi_beats(res, "ate_sim3_m")}
+
+
+def _multi_beats(res: dict, key: str) -> dict:
+    """``multi_beats_single`` / ``multi_beats_none`` for the modes that ran."""
+    return {f"multi_beats_{o}": res["multi"][key] < res[o][key]
+            for o in ("single", "none") if "multi" in res and o in res}
 
 
 def exp_storage(a, cfg: MapperConfig) -> dict:
@@ -618,6 +622,8 @@ def main(argv=None) -> int:
     p.add_argument("--sc-storage-spare", default="",
                    help="sc_storage values run sparing high-error Gaussians (prune_spare_high_error=True)")
     p.add_argument("--pose-frames", type=int, default=100)
+    p.add_argument("--pose-modes", default="none,single,multi",
+                   help="refinement modes of the pose / pose_frontend ablations")
     p.add_argument("--pose-source", default=None,
                    help="pose_frontend / score_frontend on this recording (any source with ground truth) "
                         "instead of the room")
@@ -647,6 +653,9 @@ def main(argv=None) -> int:
             setattr(a, name, [float(v) for v in getattr(a, name).split(",") if v.strip()])
         except ValueError:
             p.error(f"--{name.replace('_', '-')}: expected comma-separated numbers, got {getattr(a, name)!r}")
+    a.pose_modes = [v.strip() for v in a.pose_modes.split(",") if v.strip()]
+    if not a.pose_modes or set(a.pose_modes) - {"none", "single", "multi"}:
+        p.error(f"--pose-modes: expected a comma-separated subset of none,single,multi, got {a.pose_modes}")
     exps = [e.strip() for e in a.exp.split(",") if e.strip()]
     unknown = [e for e in exps if e not in EXPERIMENTS]
     if unknown or not exps:

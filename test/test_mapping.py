@@ -1044,14 +1044,15 @@ def _scaled(f, cam, scale: float):
     return _kf(f.stamp_ns, T, f.depth.numpy() * scale, cam, image=f.image)
 
 
+@pytest.mark.parametrize("solver", ["gn", "adam"])
 @pytest.mark.parametrize("scale", [1.0, 6.0])
-def test_single_pose_refinement_corrects_a_pose_against_a_correct_map(room_two_views, scale):
+def test_single_pose_refinement_corrects_a_pose_against_a_correct_map(room_two_views, scale, solver):
     """At scale 6 the same scene and perturbation are 6x larger (a monocular map has no metric
     scale): translation steps follow the median keyframe depth, so the correction is as good."""
     cam, (f0, f1) = room_two_views
     f0, f1 = _scaled(f0, cam, scale), _scaled(f1, cam, scale)
     m = Mapper(MapperConfig(points_per_keyframe=6000, iters_per_keyframe=20, sample_ratio=1.0,
-                            refine_lr_trans_rel=1.5e-3, refine_lr_rot=2e-3))
+                            refine_lr_trans_rel=1.5e-3, refine_lr_rot=2e-3, refine_solver=solver))
     for f in (f0, f1):
         m.add_keyframe(f)
         m.train()
@@ -1065,11 +1066,12 @@ def test_single_pose_refinement_corrects_a_pose_against_a_correct_map(room_two_v
     assert np.array_equal(poses[f0.stamp_ns], f0.T_wc.numpy())          # gauge: the first is fixed
 
 
-@pytest.mark.parametrize("sh_degree", [0, 1])
-def test_multi_pose_refinement_corrects_a_keyframe_and_its_gaussians(room_two_views, sh_degree):
+@pytest.mark.parametrize("sh_degree,solver", [(0, "gn"), (1, "gn"), (0, "adam")])
+def test_multi_pose_refinement_corrects_a_keyframe_and_its_gaussians(room_two_views, sh_degree, solver):
     cam, (f0, f1) = room_two_views
     m = Mapper(MapperConfig(points_per_keyframe=6000, iters_per_keyframe=20, sample_ratio=1.0,
-                            refine_lr_trans_rel=1.5e-3, refine_lr_rot=2e-3, sh_degree=sh_degree))
+                            refine_lr_trans_rel=1.5e-3, refine_lr_rot=2e-3, sh_degree=sh_degree,
+                            refine_solver=solver))
     m.add_keyframe(f0)
     m.train()
     T_gt = f1.T_wc.numpy().copy()

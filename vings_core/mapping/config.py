@@ -94,6 +94,16 @@ class MapperConfig:
     # ---- single-to-multi pose refinement
     refine_mode: str = "multi"         # "none" | "single" (rendered pose only) | "multi"
     refine_iters: int = 10             # per call of refine_poses()
+    refine_solver: str = "gn"          # "gn": damped Gauss-Newton per render (pose_gn.py); "adam": gradient steps
+    refine_gn_sigma_rgb: float = 0.05  # gn: colour residual noise (intensity in [0, 1]); depth uses depth_rel_std0
+    refine_gn_huber: float = 2.0       # gn: Huber threshold in noise stds
+    refine_gn_blur_px: float = 1.0     # gn: Gaussian blur of render and keyframe (wider convergence basin), px
+    refine_gn_stride: int = 2          # gn: residuals on every stride-th pixel per axis (cost / stride^2)
+    refine_gn_batch: int = 0           # gn: renders whose normal equations one joint step solves (0: window size)
+    refine_gn_damping: float = 0.1     # gn: Levenberg-Marquardt damping, relative to the Hessian diagonal
+    refine_gn_max_trans_rel: float = 0.005  # gn: trust region, translation per step as a fraction of the
+                                       # window's median keyframe depth (1.45 cm at 2.9 m)
+    refine_gn_max_rot: float = 0.01    # gn: trust region, rotation per step, rad
     refine_lr_trans_rel: float = 3.5e-4  # translation per Adam step, as a fraction of the window's
                                        # median keyframe depth (1 mm at the room's 2.9 m): scale-free,
                                        # so a monocular map of any scale takes the same pixel-size steps
@@ -124,6 +134,15 @@ class MapperConfig:
             raise ValueError(f"sample_ratio must be in (0, 1], got {self.sample_ratio}")
         if self.refine_mode not in ("none", "single", "multi"):
             raise ValueError(f"refine_mode must be none|single|multi, got {self.refine_mode!r}")
+        if self.refine_solver not in ("gn", "adam"):
+            raise ValueError(f"refine_solver must be gn|adam, got {self.refine_solver!r}")
+        for name in ("refine_gn_sigma_rgb", "refine_gn_huber", "refine_gn_max_trans_rel", "refine_gn_max_rot"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
+        if self.refine_gn_stride < 1:
+            raise ValueError(f"refine_gn_stride must be >= 1, got {self.refine_gn_stride}")
+        if not (self.refine_gn_damping >= 0 and self.refine_gn_blur_px >= 0 and self.refine_gn_batch >= 0):
+            raise ValueError("refine_gn_damping, refine_gn_blur_px and refine_gn_batch must be >= 0")
         if self.delta_status < 1 or self.delta_storage < 1 or self.delta_k < 1:
             raise ValueError("delta_status, delta_storage and delta_k must be >= 1")
         if self.points_per_keyframe < 1:

@@ -22,7 +22,7 @@ import math
 import os
 import time
 import zipfile
-from dataclasses import asdict, replace
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Optional
 
@@ -36,6 +36,7 @@ from ..render import rasterize_2dgs
 from ..render.sh import rotate_sh
 from ..types import CameraModel, Keyframe
 from ..util import NPZ_READ_ERRORS, atomic_write, log
+from . import pose_gn as GN
 from . import scores as S
 from .config import MapperConfig
 from .gaussians import ALL_FIELDS, PARAM_FIELDS, GaussianMap, quat_multiply, sh_dc_to_rgb
@@ -833,15 +834,77 @@ class Mapper:
             gm = gm.index(ok)
         first = self._order[0] if (cfg.refine_fix_first and self._order) else None
         if mode == "multi":
-            owners, inv = torch.unique(gm.kf_id, return_inverse=True)
-            owners = owners.cpu()
+            owners = torch.unique(gm.kf_id).cpu()
             win = torch.tensor([kf.stamp_ns for kf in self.window], dtype=torch.int64)
-            extra = win[~torch.isin(win, owners)]
-            owners = torch.sort(torch.cat([owners, extra])).values
+            owners = torch.sort(torch.cat([owners, win[~torch.isin(win, owners)]])).values
             inv = torch.searchsorted(owners, gm.kf_id.cpu())
         else:
             owners = torch.tensor(sorted(kf.stamp_ns for kf in self.window), dtype=torch.int64)
             inv = None
+        U = len(owners)
+        T_own = torch.from_numpy(np.stack([self._poses.get(int(o), np.eye(4)) for o in owners.tolist()])) \
+            if U else torch.zeros(0, 4, 4, dtype=torch.float64)
+        fixed = (owners == first) if first is not None else torch.zeros(U, dtype=torch.bool)
+        ctx = _RefineCtx(gm=gm, mode=mode, owners=owners, inv=inv, T_own=T_own, T_own_inv=pose_inverse(T_own),
+                         fixed=fixed)
+        solve = self._refine_gn if cfg.refine_solver == "gn" else self._refine_adam
+        xi = solve(ctx, iters)
+        # commit: T_k <- T_k exp(xi_k) (camera-frame delta); in multi mode the owners' Gaussians move with them
+        moved = (xi.abs().sum(1) > 0).nonzero()[:, 0]
+        if moved.numel() == 0:
+            return
+        D = se3_exp(xi[moved]).numpy()
+        changes = {}
+        for j, i in enumerate(moved.tolist()):
+            s = int(owners[i])
+            changes[s] = (self._poses[s], self._poses[s] @ D[j])
+        # single: only the cameras move, the owners' Gaussians (active and passive) stay
+        self._commit_poses(changes, move_gaussians=(mode == "multi"))
+
+    def _refine_render(self, ctx: "_RefineCtx", xi: torch.Tensor, r: int, kf: Keyframe):
+        """Render keyframe ``r`` (index into ``ctx.owners``) with the deltas ``xi`` applied: its camera
+        ``T_r exp(xi_r)``; in multi mode every owner's Gaussians moved by ``T_k exp(xi_k) T_k^-1``.
+        Differentiable in ``xi``. Returns the render and, in multi mode, the moved means and quats."""
+        D = se3_exp(xi)                                   # (U, 4, 4) camera-frame deltas
+        T_cw = pose_inverse(ctx.T_own[r] @ D[r])
+        if ctx.mode != "multi":
+            return self._rasterize(ctx.gm, T_cw.to(torch.float32), kf.camera, sample_ratio=1.0), None
+        gm, inv = ctx.gm, ctx.inv
+        Wd = ctx.T_own @ D @ ctx.T_own_inv                 # world-frame motion of each owner's Gaussians
+        # index_select, not Wd[inv]: the backward of advanced indexing (index_put_ with
+        # accumulate) sums in a thread-dependent order on the CPU, index_select's does not
+        Dg = torch.index_select(Wd.to(torch.float32), 0, inv)
+        means = (Dg[:, :3, :3] @ gm.means[:, :, None])[:, :, 0] + Dg[:, :3, 3]
+        qd = torch.index_select(rotmat_to_quat(Wd[:, :3, :3]).to(torch.float32), 0, inv)
+        quats = quat_multiply(qd, gm.quats)
+        sh = rotate_sh(gm.sh, Wd[:, :3, :3], inv)        # view-dependent colour turns along
+        out = self._rasterize(gm, T_cw.to(torch.float32), kf.camera, sample_ratio=1.0,
+                              means=means, quats=quats, sh=sh)
+        return out, (means, quats, T_cw)
+
+    def _refine_visible(self, ctx: "_RefineCtx", out, r: int) -> torch.Tensor:
+        """``(U,)`` bool: the poses this render may update. A pose is updated only when the render
+        shows enough of what constrains it (refine_min_pixels, in pixel weights sum alpha T): in
+        single mode the rendered keyframe needs that much map in view; in multi mode another keyframe
+        needs that much contribution from its own Gaussians (one seen through a few pixels at the
+        edge of the view does not step on their noise), and the rendered keyframe that much from
+        OTHER keyframes' Gaussians: its own move with its camera, so they cannot constrain it."""
+        cfg = self.cfg
+        U = len(ctx.owners)
+        contrib = out.contribution.detach().to(torch.float64)
+        vis = torch.zeros(U, dtype=torch.bool)
+        if ctx.mode == "multi":
+            per_owner = torch.zeros(U, dtype=torch.float64).index_add_(0, ctx.inv, contrib)
+            vis = per_owner >= cfg.refine_min_pixels
+            vis[r] = float(contrib.sum() - per_owner[r]) >= cfg.refine_min_pixels
+        else:
+            vis[r] = float(contrib.sum()) >= cfg.refine_min_pixels
+        return vis & ~ctx.fixed
+
+    def _refine_adam(self, ctx: "_RefineCtx", iters: int) -> torch.Tensor:
+        """First-order refinement: autograd gradients of the training loss, Adam steps."""
+        cfg = self.cfg
+        owners = ctx.owners
         U = len(owners)
         xi = torch.zeros(U, 6, dtype=torch.float64)
         # Adam state per keyframe persists across calls (like a per-keyframe pose optimiser)
@@ -853,53 +916,19 @@ class Mapper:
         steps = torch.tensor([int(a[2]) if a is not None else 0 for a in st], dtype=torch.int64)
         lr_t = cfg.refine_lr_trans_rel * self._depth_scale()
         lr = torch.tensor([lr_t] * 3 + [cfg.refine_lr_rot] * 3, dtype=torch.float64)
-        fixed = (owners == first) if first is not None else torch.zeros(U, dtype=torch.bool)
         b1, b2, eps = 0.9, 0.999, 1e-12
         vs = self._pose_v
-        # pose deltas act in each keyframe's camera frame (paper eq. pose_refine): T_k <- T_k exp(xi_k),
-        # so rotations turn about the camera centre; keyframe k's Gaussians move by T_k exp(xi_k) T_k^-1
-        T_own = torch.from_numpy(np.stack([self._poses.get(int(o), np.eye(4)) for o in owners.tolist()])) \
-            if U else torch.zeros(0, 4, 4, dtype=torch.float64)
-        T_own_inv = pose_inverse(T_own)
         for _ in range(iters):
             kf = self._next_kf(self._rqueue)
             r = int(torch.searchsorted(owners, torch.tensor(kf.stamp_ns)))
             x = xi.clone().requires_grad_(True)
-            D = se3_exp(x)                               # (U, 4, 4) camera-frame deltas
-            T_cw = pose_inverse(T_own[r] @ D[r])
-            if mode == "multi":
-                Wd = (T_own @ D @ T_own_inv)                  # world-frame motion of each owner's Gaussians
-                # index_select, not Wd[inv]: the backward of advanced indexing (index_put_ with
-                # accumulate) sums in a thread-dependent order on the CPU, index_select's does not
-                Dg = torch.index_select(Wd.to(torch.float32), 0, inv)
-                means = (Dg[:, :3, :3] @ gm.means[:, :, None])[:, :, 0] + Dg[:, :3, 3]
-                qd = torch.index_select(rotmat_to_quat(Wd[:, :3, :3]).to(torch.float32), 0, inv)
-                quats = quat_multiply(qd, gm.quats)
-                sh = rotate_sh(gm.sh, Wd[:, :3, :3], inv)    # view-dependent colour turns along
-                out = self._rasterize(gm, T_cw.to(torch.float32), kf.camera, sample_ratio=1.0,
-                                      means=means, quats=quats, sh=sh)
-            else:
-                out = self._rasterize(gm, T_cw.to(torch.float32), kf.camera, sample_ratio=1.0)
+            out, _ = self._refine_render(ctx, x, r, kf)
             terms: dict = {}
             loss = self._losses(out, kf, terms, with_normal=False, with_acc=False, expected_depth=True)
             terms.pop("l1_map", None)
             loss.backward()
             g = x.grad.detach().clone()
-            # a pose is updated only when the render shows enough of what constrains it
-            # (refine_min_pixels, in pixel weights sum alpha T): in single mode the rendered
-            # keyframe needs that much map in view; in multi mode another keyframe needs that much
-            # contribution from its own Gaussians (one seen through a few pixels at the edge of the
-            # view does not step on their noise), and the rendered keyframe that much from OTHER
-            # keyframes' Gaussians: its own move with its camera, so they cannot constrain it
-            contrib = out.contribution.detach().to(torch.float64)
-            if mode == "multi":
-                per_owner = torch.zeros(U, dtype=torch.float64).index_add_(0, inv, contrib)
-                vis_owner = per_owner >= cfg.refine_min_pixels
-                vis_owner[r] = float(contrib.sum() - per_owner[r]) >= cfg.refine_min_pixels
-            else:
-                vis_owner = torch.zeros(U, dtype=torch.bool)
-                vis_owner[r] = float(contrib.sum()) >= cfg.refine_min_pixels
-            upd = vis_owner & ~fixed & torch.isfinite(g).all(1)
+            upd = self._refine_visible(ctx, out, r) & torch.isfinite(g).all(1)
             if not upd.any():
                 continue
             steps[upd] += 1
@@ -922,17 +951,107 @@ class Mapper:
             xi[upd] -= rate * (m[upd] / (1 - b1 ** t)) / (v_hat.sqrt() + eps)
         for i in (steps > 0).nonzero()[:, 0].tolist():
             self._pose_adam[int(owners[i])] = (m[i].numpy().copy(), v[i].numpy().copy(), int(steps[i]))
-        # commit: T_k <- T_k exp(xi_k) (camera-frame delta); in multi mode the owners' Gaussians move with them
-        moved = (xi.abs().sum(1) > 0).nonzero()[:, 0]
-        if moved.numel() == 0:
-            return
-        D = se3_exp(xi[moved]).numpy()
-        changes = {}
-        for j, i in enumerate(moved.tolist()):
-            s = int(owners[i])
-            changes[s] = (self._poses[s], self._poses[s] @ D[j])
-        # single: only the cameras move, the owners' Gaussians (active and passive) stay
-        self._commit_poses(changes, move_gaussians=(mode == "multi"))
+        return xi
+
+    @torch.no_grad()
+    def _owner_shares(self, ctx: "_RefineCtx", moved, kf: Keyframe, vis_idx: list[int]) -> torch.Tensor:
+        """``(H, W, V)`` each listed owner's share ``sum_{g in k} alpha T`` of the render of ``kf``
+        (renders of indicator colours, three owners per render)."""
+        gm = ctx.gm
+        means, quats, T_cw = moved
+        scales = torch.exp(gm.log_scales)
+        opac = torch.sigmoid(gm.opacity_logits)
+        shares = []
+        for j in range(0, len(vis_idx), 3):
+            colors = torch.zeros(len(gm), 3, dtype=gm.means.dtype)
+            for c, k in enumerate(vis_idx[j:j + 3]):
+                colors[:, c] = (ctx.inv == k).to(colors.dtype)
+            o = rasterize_2dgs(means, quats, scales, opac, colors, T_cw.to(torch.float32), kf.camera,
+                               background=torch.zeros(3))
+            shares.append(o.color[..., :len(vis_idx[j:j + 3])])
+        return torch.cat(shares, -1).to(torch.float64)
+
+    @torch.no_grad()
+    def _refine_gn(self, ctx: "_RefineCtx", iters: int) -> torch.Tensor:
+        """Second-order refinement (:mod:`.pose_gn`): the normal equations of ``refine_gn_batch``
+        renders (window keyframes in turn; 0: as many as the window holds) are summed and solved
+        jointly for every pose they constrain, one damped Gauss-Newton step per batch. Steps scale
+        with the residual, so a far pose travels in a few steps and a converged one stays put (no
+        random walk on gradient noise); the joint solve lets each pose be fixed by the renders
+        that observe it best (one render alone leaves poorly observed directions free)."""
+        cfg = self.cfg
+        owners = ctx.owners
+        U = len(owners)
+        xi = torch.zeros(U, 6, dtype=torch.float64)
+        max_t = cfg.refine_gn_max_trans_rel * self._depth_scale()
+        batch = cfg.refine_gn_batch or len(self.window)
+        H_all = torch.zeros(6 * U, 6 * U, dtype=torch.float64)
+        b_all = torch.zeros(6 * U, dtype=torch.float64)
+        free = torch.zeros(U, dtype=torch.bool)
+        rendered = torch.zeros(U, dtype=torch.bool)
+        for it in range(iters):
+            kf = self._next_kf(self._rqueue)
+            r = int(torch.searchsorted(owners, torch.tensor(kf.stamp_ns)))
+            rendered[r] = True
+            terms = None
+            out, moved = self._refine_render(ctx, xi, r, kf)
+            upd = self._refine_visible(ctx, out, r)
+            if upd.any():
+                aux = self._kf_aux(kf)
+                terms = GN.pixel_terms(out.color, out.depth / out.alpha.clamp_min(1e-6), out.alpha, kf.image,
+                                       kf.depth, aux["w_depth"], aux["usable"], kf.camera,
+                                       sigma_rgb=cfg.refine_gn_sigma_rgb, sigma_depth_rel=cfg.depth_rel_std0,
+                                       huber=cfg.refine_gn_huber, blur_px=cfg.refine_gn_blur_px,
+                                       stride=cfg.refine_gn_stride)
+            if terms is not None and terms.pix.numel() >= 6:
+                T_cur = ctx.T_own @ se3_exp(xi)
+                if ctx.mode == "multi":
+                    idx = sorted(set(upd.nonzero()[:, 0].tolist()) | {r})
+                    w = self._owner_shares(ctx, moved, kf, idx)                   # (H, W, V)
+                    w = (w / out.alpha.to(torch.float64).clamp_min(1e-6)[..., None]).reshape(-1, len(idx))
+                    coeff = w[terms.pix]
+                    jr = idx.index(r)
+                    # content of r moves with its camera; all else (other owners, held ones) by -xi_r
+                    coeff[:, jr] = coeff[:, jr] - 1.0
+                    adj = GN.se3_adjoint(pose_inverse(T_cur[r])[None] @ T_cur[idx])
+                else:
+                    idx = [r]
+                    coeff = -torch.ones(terms.pix.numel(), 1, dtype=torch.float64)
+                    adj = torch.eye(6, dtype=torch.float64)[None]
+                H, b = GN.owner_system(terms, coeff, adj)
+                cols = (torch.tensor(idx)[:, None] * 6 + torch.arange(6)).reshape(-1)
+                H_all[cols[:, None], cols[None]] += H
+                b_all[cols] += b
+                free[torch.tensor(idx)[upd[idx]]] = True
+            if (it + 1) % batch == 0 or it == iters - 1:
+                # only poses whose own camera was rendered in the batch step (so keyframes that
+                # left the window keep theirs): a keyframe seen only through its Gaussians in
+                # others' views has a weakly observed rotation (turning about its camera centre ~
+                # shifting a distant patch), which the step would take freely, and a joint solve
+                # would split each new keyframe's error between it and the old owners it sees
+                free &= rendered
+                if free.any():
+                    xi += GN.damped_step(H_all, b_all, free, cfg.refine_gn_damping, max_t, cfg.refine_gn_max_rot)
+                H_all.zero_()
+                b_all.zero_()
+                free[:] = False
+                rendered[:] = False
+        return xi
+
+
+@dataclass
+class _RefineCtx:
+    """One refine_poses() call's fixed inputs: the Gaussians used, the keyframes whose poses may
+    move (``owners``, sorted stamps), each Gaussian's owner index (multi mode), their poses ``T_wc``
+    at the call's start and which are held (gauge)."""
+
+    gm: GaussianMap
+    mode: str
+    owners: torch.Tensor
+    inv: Optional[torch.Tensor]
+    T_own: torch.Tensor
+    T_own_inv: torch.Tensor
+    fixed: torch.Tensor
 
 
 _META_KEYS = ("config", "camera", "window", "render_count", "kf_count", "queue", "rqueue", "slots",
