@@ -989,6 +989,7 @@ class Mapper:
         b_all = torch.zeros(6 * U, dtype=torch.float64)
         free = torch.zeros(U, dtype=torch.bool)
         rendered = torch.zeros(U, dtype=torch.bool)
+        in_window = torch.isin(owners, torch.tensor([kf.stamp_ns for kf in self.window], dtype=torch.int64))
         for it in range(iters):
             kf = self._next_kf(self._rqueue)
             r = int(torch.searchsorted(owners, torch.tensor(kf.stamp_ns)))
@@ -1006,7 +1007,9 @@ class Mapper:
             if terms is not None and terms.pix.numel() >= 6:
                 T_cur = ctx.T_own @ se3_exp(xi)
                 if ctx.mode == "multi":
-                    idx = sorted(set(upd.nonzero()[:, 0].tolist()) | {r})
+                    # only window keyframes are rendered, so only they can step (below): the
+                    # others' content enters as held (moves by -xi_r) without share renders
+                    idx = sorted(set((upd & in_window).nonzero()[:, 0].tolist()) | {r})
                     w = self._owner_shares(ctx, moved, kf, idx)                   # (H, W, V)
                     w = (w / out.alpha.to(torch.float64).clamp_min(1e-6)[..., None]).reshape(-1, len(idx))
                     coeff = w[terms.pix]
