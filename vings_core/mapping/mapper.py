@@ -864,7 +864,7 @@ class Mapper:
     def _refine_render(self, ctx: "_RefineCtx", xi: torch.Tensor, r: int, kf: Keyframe):
         """Render keyframe ``r`` (index into ``ctx.owners``) with the deltas ``xi`` applied: its camera
         ``T_r exp(xi_r)``; in multi mode every owner's Gaussians moved by ``T_k exp(xi_k) T_k^-1``.
-        Differentiable in ``xi``. Returns the render and, in multi mode, the moved means and quats."""
+        Differentiable in ``xi``. Returns the render and, in multi mode, ``(means, quats, T_cw)`` it used."""
         D = se3_exp(xi)                                   # (U, 4, 4) camera-frame deltas
         T_cw = pose_inverse(ctx.T_own[r] @ D[r])
         if ctx.mode != "multi":
@@ -985,15 +985,21 @@ class Mapper:
         xi = torch.zeros(U, 6, dtype=torch.float64)
         max_t = cfg.refine_gn_max_trans_rel * self._depth_scale()
         batch = cfg.refine_gn_batch or len(self.window)
-        H_all = torch.zeros(6 * U, 6 * U, dtype=torch.float64)
-        b_all = torch.zeros(6 * U, dtype=torch.float64)
-        free = torch.zeros(U, dtype=torch.bool)
-        rendered = torch.zeros(U, dtype=torch.bool)
+        # the system spans the window keyframes only (the only ones rendered, so the only ones that
+        # can step, below); ``pos`` maps an owner index to its place there (-1: not in the window)
         in_window = torch.isin(owners, torch.tensor([kf.stamp_ns for kf in self.window], dtype=torch.int64))
+        win_idx = in_window.nonzero()[:, 0]
+        n = len(win_idx)
+        pos = torch.full((U,), -1, dtype=torch.int64)
+        pos[win_idx] = torch.arange(n)
+        H_all = torch.zeros(6 * n, 6 * n, dtype=torch.float64)
+        b_all = torch.zeros(6 * n, dtype=torch.float64)
+        free = torch.zeros(n, dtype=torch.bool)
+        rendered = torch.zeros(n, dtype=torch.bool)
         for it in range(iters):
             kf = self._next_kf(self._rqueue)
             r = int(torch.searchsorted(owners, torch.tensor(kf.stamp_ns)))
-            rendered[r] = True
+            rendered[pos[r]] = True
             terms = None
             out, moved = self._refine_render(ctx, xi, r, kf)
             upd = self._refine_visible(ctx, out, r)
@@ -1007,8 +1013,7 @@ class Mapper:
             if terms is not None and terms.pix.numel() >= 6:
                 T_cur = ctx.T_own @ se3_exp(xi)
                 if ctx.mode == "multi":
-                    # only window keyframes are rendered, so only they can step (below): the
-                    # others' content enters as held (moves by -xi_r) without share renders
+                    # the others' content enters as held (moves by -xi_r), without share renders
                     idx = sorted(set((upd & in_window).nonzero()[:, 0].tolist()) | {r})
                     w = self._owner_shares(ctx, moved, kf, idx)                   # (H, W, V)
                     w = (w / out.alpha.to(torch.float64).clamp_min(1e-6)[..., None]).reshape(-1, len(idx))
@@ -1022,10 +1027,11 @@ class Mapper:
                     coeff = -torch.ones(terms.pix.numel(), 1, dtype=torch.float64)
                     adj = torch.eye(6, dtype=torch.float64)[None]
                 H, b = GN.owner_system(terms, coeff, adj)
-                cols = (torch.tensor(idx)[:, None] * 6 + torch.arange(6)).reshape(-1)
+                loc = pos[idx]
+                cols = (loc[:, None] * 6 + torch.arange(6)).reshape(-1)
                 H_all[cols[:, None], cols[None]] += H
                 b_all[cols] += b
-                free[torch.tensor(idx)[upd[idx]]] = True
+                free[loc[upd[idx]]] = True
             if (it + 1) % batch == 0 or it == iters - 1:
                 # only poses whose own camera was rendered in the batch step (so keyframes that
                 # left the window keep theirs): a keyframe seen only through its Gaussians in
@@ -1034,7 +1040,8 @@ class Mapper:
                 # would split each new keyframe's error between it and the old owners it sees
                 free &= rendered
                 if free.any():
-                    xi += GN.damped_step(H_all, b_all, free, cfg.refine_gn_damping, max_t, cfg.refine_gn_max_rot)
+                    xi[win_idx] += GN.damped_step(H_all, b_all, free, cfg.refine_gn_damping, max_t,
+                                                  cfg.refine_gn_max_rot)
                 H_all.zero_()
                 b_all.zero_()
                 free[:] = False
