@@ -20,6 +20,7 @@ from dataclasses import dataclass
 import torch
 import torch.nn.functional as F
 
+from ..geometry import skew
 from ..types import CameraModel
 
 
@@ -27,13 +28,9 @@ def se3_adjoint(T: torch.Tensor) -> torch.Tensor:
     """``(..., 4, 4)`` pose -> ``(..., 6, 6)`` adjoint for twists ``[rho, phi]``:
     ``exp(Ad(T) xi) = T exp(xi) T^-1``."""
     R = T[..., :3, :3]
-    t = T[..., :3, 3]
-    tx = torch.zeros(T.shape[:-2] + (3, 3), dtype=T.dtype)
-    tx[..., 0, 1], tx[..., 0, 2], tx[..., 1, 2] = -t[..., 2], t[..., 1], -t[..., 0]
-    tx = tx - tx.transpose(-1, -2)
     A = torch.zeros(T.shape[:-2] + (6, 6), dtype=T.dtype)
     A[..., :3, :3] = R
-    A[..., :3, 3:] = tx @ R
+    A[..., :3, 3:] = skew(T[..., :3, 3]) @ R
     A[..., 3:, 3:] = R
     return A
 
@@ -160,7 +157,7 @@ def owner_system(terms: GNTerms, coeff: torch.Tensor, adj: torch.Tensor) -> tupl
 def damped_step(H: torch.Tensor, b: torch.Tensor, free: torch.Tensor, damping: float,
                 max_trans: float, max_rot: float) -> torch.Tensor:
     """Levenberg-Marquardt step ``(V, 6)`` of the free owners (``free`` ``(V,)`` bool; held ones get
-    0): ``(H + damping (diag H + eps)) xi = -b``, shrunk as a whole so no owner's translation
+    0): ``(H + damping diag H + eps I) xi = -b`` (``eps`` 1e-9 of the largest diagonal entry), shrunk as a whole so no owner's translation
     exceeds ``max_trans`` (m) nor its rotation ``max_rot`` (rad) (trust region)."""
     V = free.numel()
     step = torch.zeros(V, 6, dtype=H.dtype)
