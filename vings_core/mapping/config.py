@@ -70,7 +70,7 @@ class MapperConfig:
     delta_storage: int = 200           # storage control every n iterations
     sc_status: float = 1.0e-4          # unstable -> stable when S_C below
     se_status: float = 0.5             # stable -> unstable when S_E above
-    sc_storage: float = 1.6            # prune unstable Gaussians with S_C below (per view, see next)
+    sc_storage: float = 2.7            # prune unstable Gaussians with S_C below (per view, see next)
     min_score_age: int = 100           # iterations of scoring before a Gaussian may be judged
     sc_storage_per_view: bool = True   # storage control compares S_C per window keyframe that sees the
                                        # Gaussian (S_C / #views) with sc_storage instead of the sum
@@ -78,10 +78,10 @@ class MapperConfig:
                                        # contribution is >= this x the Gaussian's best window view
     prune_window_owned_only: bool = True  # storage control prunes only Gaussians whose ID(g) is a
                                        # window keyframe (False: the paper's rule on every Gaussian)
-    prune_spare_high_error: bool = False  # storage control spares Gaussians whose window error per
+    prune_spare_high_error: bool = True   # storage control spares Gaussians whose window error per
                                        # contribution (sum e_t / sum c_t) exceeds the window keyframes'
                                        # mean L1 (small splats where the render is still wrong);
-                                       # measured, not yet the default (docs/mapping.md)
+                                       # default with sc_storage 2.7 (docs/mapping.md)
 
     # ---- storage tiers (paper "GPU-CPU transfer")
     delta_k: int = 8                   # tier update every n keyframes
