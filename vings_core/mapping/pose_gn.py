@@ -157,8 +157,9 @@ def owner_system(terms: GNTerms, coeff: torch.Tensor, adj: torch.Tensor) -> tupl
 def damped_step(H: torch.Tensor, b: torch.Tensor, free: torch.Tensor, damping: float,
                 max_trans: float, max_rot: float) -> torch.Tensor:
     """Levenberg-Marquardt step ``(V, 6)`` of the free owners (``free`` ``(V,)`` bool; held ones get
-    0): ``(H + damping diag H + eps I) xi = -b`` (``eps`` 1e-9 of the largest diagonal entry), shrunk as a whole so no owner's translation
-    exceeds ``max_trans`` (m) nor its rotation ``max_rot`` (rad) (trust region)."""
+    0): ``(H + damping diag H + eps I) xi = -b`` (``eps`` 1e-9 of the largest diagonal entry),
+    shrunk as a whole so no owner's translation exceeds ``max_trans`` (m) nor its rotation
+    ``max_rot`` (rad) (trust region)."""
     V = free.numel()
     step = torch.zeros(V, 6, dtype=H.dtype)
     cols = free.repeat_interleave(6)
