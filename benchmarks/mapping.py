@@ -364,7 +364,8 @@ def exp_pose(a, cfg: MapperConfig) -> dict:
         log(f"pose[{mode}]:", res[mode])
         m.close()
     return {"frames": seq.n, "keyframes": len(kf), "noise": {"trans_m": a.noise_trans, "rot_deg": a.noise_rot},
-            "refine_iters_per_keyframe": cfg.refine_iters, "refine_solver": cfg.refine_solver, "results": res,
+            "refine_iters_per_keyframe": cfg.refine_iters, "refine_solver": cfg.refine_solver,
+            "refine_gn_decay": cfg.refine_gn_decay, "results": res,
             **_multi_beats(res, "ate_rmse_m")}
 
 
@@ -490,6 +491,7 @@ def exp_pose_frontend(a, cfg: MapperConfig) -> dict:
         m.close()
     return {"source": a.pose_source or "room", "frames": a.pose_frames, "keyframes": len(kfs),
             "width": kfs[0].camera.width, "height": kfs[0].camera.height, "refine_solver": cfg.refine_solver,
+            "refine_gn_decay": cfg.refine_gn_decay,
             "results": res, **_multi_beats(res, "ate_sim3_m")}
 
 

@@ -607,7 +607,7 @@ def test_empty_map_writes_a_valid_ply(tmp_path, sh_degree):
 def test_checkpoint_round_trip_is_bit_exact(room_small, tmp_path):
     cam, frames = room_small
     cfg = MapperConfig(points_per_keyframe=800, delta_k=2, tau=0.05, max_active=100000, iters_per_keyframe=3,
-                       sample_ratio=1.0, delta_storage=4, delta_status=8, min_score_age=2)
+                       sample_ratio=1.0, delta_storage=4, delta_status=8, min_score_age=2, refine_gn_decay=True)
     m = Mapper(cfg)
     for i in (0, 2, 4):
         m.add_keyframe(frames[i])
@@ -624,6 +624,7 @@ def test_checkpoint_round_trip_is_bit_exact(room_small, tmp_path):
         assert np.array_equal(T, m2.keyframe_poses()[s])
     assert [k.stamp_ns for k in m2.window] == [k.stamp_ns for k in m.window]
     assert m2.render_count == m.render_count and m2.cfg == m.cfg
+    assert m._pose_gn_steps and m2._pose_gn_steps == m._pose_gn_steps      # refinement's step counts
     m2.save_checkpoint(p2)
     a, b = np.load(p1), np.load(p2)
     assert sorted(a.files) == sorted(b.files)

@@ -185,3 +185,18 @@ def test_gn_multi_moves_only_keyframes_rendered_in_the_batch():
     assert np.array_equal(P[1_000], before_pose)
     assert torch.equal(m.gm.means[m.gm.kf_id == 1_000], before_means)
     assert np.linalg.norm(P[1_002][:3, 3] - Ts[2][:3, 3]) < 0.7 * err0
+
+
+def test_gn_decay_scales_each_keyframes_t_th_step_by_one_over_t():
+    """refine_gn_decay: a keyframe's t-th Gauss-Newton step is scaled by 1/t (its own count, kept
+    across refine_poses calls); keyframes held in a step neither move nor count."""
+    from vings_core.mapping import Mapper, MapperConfig
+    m = Mapper(MapperConfig())
+    stamps = torch.tensor([10, 20, 30])
+    f1 = m._gn_step_scale(stamps, torch.tensor([True, True, False]))
+    f2 = m._gn_step_scale(stamps, torch.tensor([True, False, True]))
+    f3 = m._gn_step_scale(stamps, torch.tensor([True, True, True]))
+    assert f1.tolist() == [1.0, 1.0, 0.0]
+    assert f2.tolist() == [0.5, 0.0, 1.0]
+    assert f3.tolist() == pytest.approx([1 / 3, 1 / 2, 1 / 2])
+    assert m._pose_gn_steps == {10: 3, 20: 2, 30: 2}

@@ -104,6 +104,8 @@ class MapperConfig:
     refine_gn_max_trans_rel: float = 0.005  # gn: trust region, translation per step as a fraction of the
                                        # window's median keyframe depth (1.45 cm at 2.9 m)
     refine_gn_max_rot: float = 0.01    # gn: trust region, rotation per step, rad
+    refine_gn_decay: bool = False      # gn: a keyframe's t-th step is scaled by 1/t (averages the noise;
+                                       # keeps exact poses closer, stops far ones short: docs/mapping.md)
     refine_lr_trans_rel: float = 3.5e-4  # translation per Adam step, as a fraction of the window's
                                        # median keyframe depth (1 mm at the room's 2.9 m): scale-free,
                                        # so a monocular map of any scale takes the same pixel-size steps

@@ -83,6 +83,7 @@ class Mapper:
         self._aux: dict[int, dict] = {}               # cached per-keyframe masks / weights
         self._pose_adam: dict[int, tuple] = {}        # stamp -> (m (6,), v (6,), steps) of pose refinement
         self._pose_v = np.zeros(7)                    # shared second moment of pose gradients (6,) + its steps
+        self._pose_gn_steps: dict[int, int] = {}      # stamp -> Gauss-Newton steps taken (refine_gn_decay)
         # keyframes that left the window, compact, spilled to disk beyond history_memory_mb
         self._history = HistoryStore(int(self.cfg.history_memory_mb * 2**20), self.cfg.spill_dir or None)
         self.counters = dict(added=0, deleted=0, pruned=0, nonfinite_grads=0, to_stable=0, to_unstable=0, to_passive=0,
@@ -338,6 +339,9 @@ class Mapper:
         d["pose_adam/v"] = np.stack([self._pose_adam[s][1] for s in pa]) if pa else np.zeros((0, 6))
         d["pose_adam/steps"] = np.array([self._pose_adam[s][2] for s in pa], dtype=np.int64)
         d["pose_adam/v_shared"] = self._pose_v.copy()
+        gs = sorted(self._pose_gn_steps)
+        d["pose_gn/stamps"] = np.array(gs, dtype=np.int64)
+        d["pose_gn/steps"] = np.array([self._pose_gn_steps[s] for s in gs], dtype=np.int64)
 
         def _w(tmp: str) -> None:
             # an .npz (uncompressed zip of .npy) written entry by entry: the history keyframes go in
@@ -434,6 +438,8 @@ class Mapper:
             m._pose_v = np.array(z["pose_adam/v_shared"], dtype=np.float64)
         m._pose_adam = {int(s): (np.array(a), np.array(b), int(c)) for s, a, b, c in
                         zip(z["pose_adam/stamps"], z["pose_adam/m"], z["pose_adam/v"], z["pose_adam/steps"])}
+        if "pose_gn/stamps" in z:      # older checkpoints: no Gauss-Newton step counts
+            m._pose_gn_steps = {int(s): int(c) for s, c in zip(z["pose_gn/stamps"], z["pose_gn/steps"])}
         if "pchunk/count" in z:        # one chunk at a time (it spills as it goes, like the saved store)
             for k in range(int(z["pchunk/count"])):
                 p = f"pchunk/{k}/"
@@ -1040,13 +1046,30 @@ class Mapper:
                 # would split each new keyframe's error between it and the old owners it sees
                 free &= rendered
                 if free.any():
-                    xi[win_idx] += GN.damped_step(H_all, b_all, free, cfg.refine_gn_damping, max_t,
-                                                  cfg.refine_gn_max_rot)
+                    step = GN.damped_step(H_all, b_all, free, cfg.refine_gn_damping, max_t, cfg.refine_gn_max_rot)
+                    if cfg.refine_gn_decay:
+                        step = step * self._gn_step_scale(owners[win_idx], free)[:, None]
+                    xi[win_idx] += step
                 H_all.zero_()
                 b_all.zero_()
                 free[:] = False
                 rendered[:] = False
         return xi
+
+    def _gn_step_scale(self, stamps: torch.Tensor, free: torch.Tensor) -> torch.Tensor:
+        """``(n,)`` factors ``1/t`` of the free keyframes' steps (``t``: that keyframe's Gauss-Newton
+        steps so far, this one included; held ones 0), counting this step. Each step goes to the
+        minimum of the current map's cost, which moves as training follows the poses (noise of ~1 mm
+        here even from exact poses and depth); full steps would random-walk on it. With ``1/t``
+        (stochastic approximation: the factors sum to infinity, their squares do not) a keyframe's
+        pose converges to the average of the minima its steps saw, and a far pose still travels."""
+        f = torch.zeros(len(stamps), dtype=torch.float64)
+        for i in free.nonzero()[:, 0].tolist():
+            s = int(stamps[i])
+            t = self._pose_gn_steps.get(s, 0) + 1
+            self._pose_gn_steps[s] = t
+            f[i] = 1.0 / t
+        return f
 
 
 @dataclass
