@@ -472,8 +472,17 @@ def test_mapper_killed_and_restarted_resumes_from_checkpoint(synthetic_mcap, tmp
         before = ckpt_stamps()
         assert {int(k.stamp_ns) for k in kfs[:3]} <= set(before)
         m2 = start()
-        send(kfs[5:])
-        spin_until(lambda: int(kfs[6].stamp_ns) in ckpt_stamps(), 90, "the new keyframes in the checkpoint")
+        # samples published before the new mapper's readers are matched are lost (volatile QoS; seen
+        # once under a loaded CI run), so re-send as a front end would after a mapper restart: the
+        # node ignores a keyframe it already holds
+        for attempt in range(9):
+            send(kfs[5:])
+            try:
+                spin_until(lambda: int(kfs[6].stamp_ns) in ckpt_stamps(), 10, "the new keyframes in the checkpoint")
+                break
+            except AssertionError:
+                if attempt == 8:
+                    raise
         os.killpg(m2.pid, signal.SIGINT)
         m2.wait(timeout=120)
         out = logs[-1].read_text()
