@@ -20,7 +20,9 @@ Experiments (``--exp``, comma separated; default all):
   depth (ATE after Sim(3) alignment: the front end's world frame and scale are its own); on the
   generated room, or on any recording with ground truth given by ``--pose-source`` (e.g.
   ``../shared/data/kitti07_160``, at the working size ``vings run`` picks, mapped as outdoors
-  when ``--pose-outdoor``).
+  when ``--pose-outdoor``). Each refined mode also reports ``blend``: the errors of poses that keep
+  a fraction (0.25, 0.5, 0.75) of its correction to the front end's poses, which shows whether any
+  weighting of the two estimates would beat the front end alone.
 * ``score_frontend`` (not in the default list): the score-manager ablation on the front end's
   keyframes (poses and depth) of the room or of ``--pose-source`` (e.g. real KITTI images):
   Gaussian count and keyframe PSNR with the manager off and at each ``--sc-storage``.
@@ -54,7 +56,7 @@ import torch
 
 from vings_core.eval.image import psnr, ssim
 from vings_core.eval.output import peak_rss_mb  # since start or the last reset_peak_rss()
-from vings_core.geometry import np_se3_exp, rotation_angle_deg
+from vings_core.geometry import np_se3_exp, np_se3_log, rotation_angle_deg
 from vings_core.mapping import Mapper, MapperConfig
 from vings_core.types import Keyframe
 
@@ -478,7 +480,8 @@ def exp_pose_frontend(a, cfg: MapperConfig) -> dict:
     kfs, gt = _frontend_keyframes(a, a.pose_frames)
     if a.pose_outdoor:
         cfg = replace(cfg, outdoor=True)
-    res = {"initial": _errors_vs_gt({k.stamp_ns: k.T_wc.numpy() for k in kfs}, gt)}
+    start = {k.stamp_ns: k.T_wc.numpy().copy() for k in kfs}
+    res = {"initial": _errors_vs_gt(start, gt)}
     for mode in a.pose_modes:
         c = replace(cfg, refine_mode=mode)
         m, st = run_mapping(None, c, None, refine=mode != "none", tag=f"pose_fe[{mode}]",
@@ -487,12 +490,32 @@ def exp_pose_frontend(a, cfg: MapperConfig) -> dict:
         cam = kfs[0].camera
         ps = [psnr(m.render(m.keyframe_poses()[k.stamp_ns], cam)["color"], k.image.numpy()) for k in kfs]
         res[mode] = {**r, "psnr_keyframes_db": float(np.mean(ps)), "refine_per_kf_s": st.get("refine_per_kf_s", 0.0)}
+        if mode != "none":
+            # the front end's poses blended with the refined ones: does any weighting help?
+            res[mode]["blend"] = _blend_errors(start, m.keyframe_poses(), gt)
         log(f"pose_fe[{mode}]:", res[mode])
         m.close()
     return {"source": a.pose_source or "room", "frames": a.pose_frames, "keyframes": len(kfs),
             "width": kfs[0].camera.width, "height": kfs[0].camera.height, "refine_solver": cfg.refine_solver,
             "refine_gn_decay": cfg.refine_gn_decay,
             "results": res, **_multi_beats(res, "ate_sim3_m")}
+
+
+#: fractions of the refinement's correction kept by :func:`_blend_errors`
+BLEND_FRACTIONS = (0.25, 0.5, 0.75)
+
+
+def _blend_errors(start: dict, refined: dict, gt: dict) -> dict:
+    """Errors of poses part-way between the start and the refined ``T_wc`` of every keyframe:
+    ``T_start exp(f log(T_start^-1 T_refined))`` for ``f`` in :data:`BLEND_FRACTIONS` (a fusion
+    that trusts the refinement by ``f``; if no ``f`` beats ``f = 0``, no weighting of the two
+    estimates would). ``{f: {ate_sim3_m, rot_rmse_deg}}``."""
+    out = {}
+    for f in BLEND_FRACTIONS:
+        est = {s: start[s] @ np_se3_exp(f * np_se3_log(np.linalg.inv(start[s]) @ refined[s])) for s in start}
+        e = _errors_vs_gt(est, gt)
+        out[str(f)] = {"ate_sim3_m": e["ate_sim3_m"], "rot_rmse_deg": e["rot_rmse_deg"]}
+    return out
 
 
 def _multi_beats(res: dict, key: str) -> dict:

@@ -63,6 +63,30 @@ def test_novel_views_are_never_keyframes_and_json_is_strict():
     assert m.peak_rss_mb() > 10          # this very process holds more than 10 MB
 
 
+def test_blend_errors_interpolate_between_start_and_refined_poses():
+    """Half-way blends halve a pure correction; blending toward the truth lowers the error."""
+    from vings_core.geometry import np_se3_exp
+    m = _load("mapping")
+    rng = np.random.default_rng(0)
+    gt = {}
+    for s in range(6):
+        T = np.eye(4)
+        T[:3, :3] = np_se3_exp(np.r_[0, 0, 0, 0.3 * rng.normal(size=3)])[:3, :3]
+        T[:3, 3] = [s, 0.5 * s * s, np.sin(s)]
+        gt[s] = T
+    # every pose but the first off by 4 cm along x: the refinement brings them back to the truth
+    start = {s: T.copy() for s, T in gt.items()}
+    for s in range(1, 6):
+        start[s][:3, 3] += [0.04, 0.0, 0.0]
+    res = m._blend_errors(start, gt, gt)
+    assert set(res) == {str(f) for f in m.BLEND_FRACTIONS}
+    ate0 = m._errors_vs_gt(start, gt)["ate_sim3_m"]
+    ates = [res[str(f)]["ate_sim3_m"] for f in m.BLEND_FRACTIONS]
+    assert ate0 > ates[0] > ates[1] > ates[2] > 0
+    # half the correction, about half the error (the Sim(3) alignment is refitted each time)
+    assert math.isclose(ates[1], 0.5 * ate0, rel_tol=0.01)
+
+
 def test_harness_always_prints_one_json_line_naming_what_failed(capsys):
     """A failing experiment, one with null figures and an interrupted one: the others' figures stay,
     ``failed`` names them, and the JSON is the last stdout line also when the interrupt goes on."""
