@@ -21,7 +21,7 @@ Experiments (``--exp``, comma separated; default all):
   generated room, or on any recording with ground truth given by ``--pose-source`` (e.g.
   ``../shared/data/kitti07_160``, at the working size ``vings run`` picks, mapped as outdoors
   when ``--pose-outdoor``). Each refined mode also reports ``blend``: the errors of poses that keep
-  a fraction (0.25, 0.5, 0.75) of its correction to the front end's poses, which shows whether any
+  a fraction (0.25, 0.5, 0.75) of its correction to the front end's poses, which shows whether a
   weighting of the two estimates would beat the front end alone.
 * ``score_frontend`` (not in the default list): the score-manager ablation on the front end's
   keyframes (poses and depth) of the room or of ``--pose-source`` (e.g. real KITTI images):
@@ -508,8 +508,8 @@ BLEND_FRACTIONS = (0.25, 0.5, 0.75)
 def _blend_errors(start: dict, refined: dict, gt: dict) -> dict:
     """Errors of poses part-way between the start and the refined ``T_wc`` of every keyframe:
     ``T_start exp(f log(T_start^-1 T_refined))`` for ``f`` in :data:`BLEND_FRACTIONS` (a fusion
-    that trusts the refinement by ``f``; if no ``f`` beats ``f = 0``, no weighting of the two
-    estimates would). ``{f: {ate_sim3_m, rot_rmse_deg}}``."""
+    that trusts the refinement by ``f`` in every direction; if no ``f`` beats ``f = 0``, no such
+    uniform weighting of the two estimates would). ``{f: {ate_sim3_m, rot_rmse_deg}}``."""
     out = {}
     for f in BLEND_FRACTIONS:
         est = {s: start[s] @ np_se3_exp(f * np_se3_log(np.linalg.inv(start[s]) @ refined[s])) for s in start}
