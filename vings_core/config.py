@@ -14,6 +14,7 @@ every node block, then picks one stage section. Unknown keys and values of the w
 from __future__ import annotations
 
 import dataclasses
+import enum
 import math
 import os
 import re
@@ -201,6 +202,13 @@ def _coerce(tp: Any, val: Any, where: str) -> Any:
             return None
         inner = [a for a in args if a is not type(None)]
         return _coerce(inner[0], val, where)
+    if isinstance(tp, type) and issubclass(tp, enum.Enum):
+        if isinstance(val, tp):
+            return val
+        allowed = [m.value for m in tp]
+        if val in allowed:
+            return tp(val)
+        raise ConfigError(f"{where}: expected one of {', '.join(map(repr, allowed))}, got {val!r}")
     if tp is bool:
         if isinstance(val, bool):
             return val
@@ -245,7 +253,3 @@ def load_section(cls: Type[C], section: str, params_file: str | os.PathLike | No
     if overrides:
         values.update(overrides)
     return config_from_dict(cls, values, where)
-
-
-def config_to_dict(cfg: Any) -> dict:
-    return dataclasses.asdict(cfg)

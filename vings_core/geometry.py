@@ -205,3 +205,90 @@ def rotation_angle_deg(R: np.ndarray) -> np.ndarray:
     c = (np.trace(R, axis1=-2, axis2=-1) - 1) / 2
     v = np.stack([R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0], R[..., 1, 0] - R[..., 0, 1]], -1)
     return np.degrees(np.arctan2(np.linalg.norm(v, axis=-1) / 2, c))
+
+
+# ------------------------------------------------------------------------- rigid checks, Sim(3)
+
+
+def rigid_deviation(T: np.ndarray) -> np.ndarray:
+    """How far ``(..., 4, 4)`` transforms are from rigid: ``max(|R^T R - I|, |det R - 1|)`` per
+    transform (``inf`` where the last row is not ``0 0 0 1`` or an entry is not finite)."""
+    T = np.asarray(T, np.float64)
+    R = T[..., :3, :3]
+    eye = np.eye(3)
+    dev = np.maximum(np.abs(np.swapaxes(R, -1, -2) @ R - eye).max(axis=(-2, -1)),
+                     np.abs(np.linalg.det(R) - 1.0))
+    bad_row = np.abs(T[..., 3, :] - (0.0, 0.0, 0.0, 1.0)).max(axis=-1) > 1e-9
+    finite = np.isfinite(T).all(axis=(-2, -1))
+    return np.where(bad_row | ~finite, np.inf, dev)
+
+
+def check_rigid_pose(T, what: str, tol: float = 1e-6, error: type = None, project: bool = False) -> np.ndarray:
+    """Check that ``T`` (a ``(4, 4)`` or ``(N, 4, 4)`` array or tensor) holds finite rigid transforms
+    and return it as a float64 array (a copy). ``tol`` bounds :func:`rigid_deviation`; ``error`` is
+    the exception class raised, with a one-line message starting with ``what`` (default
+    :class:`~vings_core.errors.InputError`). ``project``: rotation blocks that deviate by more than
+    1e-9 (round-off of composed increments) are projected back onto SO(3)."""
+    if error is None:
+        from .errors import InputError as error
+    if torch.is_tensor(T):
+        T = T.detach().cpu().numpy()
+    T = np.array(T, dtype=np.float64)
+    if T.ndim < 2 or T.shape[-2:] != (4, 4):
+        raise error(f"{what}: expected a 4x4 pose, got shape {T.shape}")
+    if not np.isfinite(T).all():
+        raise error(f"{what}: pose has non-finite entries")
+    dev = rigid_deviation(T)
+    worst = float(np.max(dev)) if dev.size else 0.0
+    if worst > tol:
+        which = "" if T.ndim == 2 else f" (pose {int(np.argmax(dev))} of {len(T)})"
+        raise error(f"{what}: not a rigid pose{which}: rotation block not orthonormal with det 1, or last "
+                    f"row not 0 0 0 1 (deviation {worst:.2g} > {tol:.2g})")
+    if project and worst > 1e-9:
+        T[..., :3, :3] = np_project_rotation(T[..., :3, :3])
+    return T
+
+
+def sim3(R: np.ndarray, t: np.ndarray, s: float = 1.0) -> np.ndarray:
+    """4x4 similarity ``[[s R, t], [0, 1]]`` acting on points as ``x -> s R x + t`` (float64)."""
+    C = np.eye(4)
+    C[:3, :3] = float(s) * np.asarray(R, np.float64)
+    C[:3, 3] = np.asarray(t, np.float64).reshape(3)
+    return C
+
+
+def sim3_scale(C: np.ndarray) -> float:
+    """The scale ``s`` of a 4x4 similarity ``[[s R, t], [0, 1]]`` (1 for a rigid transform)."""
+    return float(np.cbrt(np.linalg.det(np.asarray(C, np.float64)[:3, :3])))
+
+
+def sim3_inverse(C: np.ndarray) -> np.ndarray:
+    """Inverse of a 4x4 similarity: ``[[R^T / s, -R^T t / s], [0, 1]]``."""
+    C = np.asarray(C, np.float64)
+    s = sim3_scale(C)
+    Rt = C[:3, :3].T / s
+    return sim3(Rt, -(Rt @ C[:3, 3]) / s, 1.0 / s)
+
+
+def sim3_compose(A: np.ndarray, B: np.ndarray) -> np.ndarray:
+    """``A B`` for 4x4 similarities (apply ``B`` first), with the rotation re-projected onto SO(3)."""
+    C = np.asarray(A, np.float64) @ np.asarray(B, np.float64)
+    s = sim3_scale(C)
+    return sim3(np_project_rotation(C[:3, :3] / s), C[:3, 3], s)
+
+
+def sim3_apply_to_pose(C: np.ndarray, T_wc: np.ndarray) -> np.ndarray:
+    """The camera pose ``T_wc`` after the world moves by the similarity ``C`` (``x -> s R x + t``):
+    the camera centre is mapped as a point, its orientation rotated by ``R`` (a camera pose stays
+    rigid). For a rigid ``C`` this is ``C @ T_wc``. Successive applications compose:
+    ``apply(B, apply(A, T)) == apply(B A, T)``."""
+    C = np.asarray(C, np.float64)
+    T = np.asarray(T_wc, np.float64)
+    s = sim3_scale(C)
+    R = C[:3, :3] / s
+    return np_pose(np_project_rotation(R @ T[:3, :3]), s * (R @ T[:3, 3]) + C[:3, 3])
+
+
+def pose_increment(T_new: np.ndarray, T_old: np.ndarray) -> np.ndarray:
+    """World-frame rigid increment ``C`` with ``T_new = C T_old`` (4x4 ``T_wc``, float64)."""
+    return np.asarray(T_new, np.float64) @ np_pose_inverse(np.asarray(T_old, np.float64))
