@@ -272,18 +272,28 @@ def sim3_inverse(C: np.ndarray) -> np.ndarray:
 
 def sim3_compose(A: np.ndarray, B: np.ndarray) -> np.ndarray:
     """``A B`` for 4x4 similarities (apply ``B`` first), with the rotation re-projected onto SO(3)."""
+    if is_rigid_scale(A) and is_rigid_scale(B):
+        return np_pose_compose(A, B)
     C = np.asarray(A, np.float64) @ np.asarray(B, np.float64)
     s = sim3_scale(C)
     return sim3(np_project_rotation(C[:3, :3] / s), C[:3, 3], s)
+
+
+def is_rigid_scale(C: np.ndarray, tol: float = 1e-12) -> bool:
+    """Whether the similarity ``C`` has scale 1 (to ``tol``): a rigid transform."""
+    return abs(sim3_scale(C) - 1.0) <= tol
 
 
 def sim3_apply_to_pose(C: np.ndarray, T_wc: np.ndarray) -> np.ndarray:
     """The camera pose ``T_wc`` after the world moves by the similarity ``C`` (``x -> s R x + t``):
     the camera centre is mapped as a point, its orientation rotated by ``R`` (a camera pose stays
     rigid). For a rigid ``C`` this is ``C @ T_wc``. Successive applications compose:
-    ``apply(B, apply(A, T)) == apply(B A, T)``."""
+    ``apply(B, apply(A, T)) == apply(B A, T)`` (:func:`sim3_compose`); a rigid ``C`` is applied as
+    :func:`np_pose_compose` ``(C, T_wc)``."""
     C = np.asarray(C, np.float64)
     T = np.asarray(T_wc, np.float64)
+    if is_rigid_scale(C):
+        return np_pose_compose(C, T)
     s = sim3_scale(C)
     R = C[:3, :3] / s
     return np_pose(np_project_rotation(R @ T[:3, :3]), s * (R @ T[:3, 3]) + C[:3, 3])
