@@ -597,3 +597,33 @@ def test_rectified_image_topic_takes_the_projection_matrix():
     msg.p = [0.0] * 12
     with pytest.raises(InputError, match="rectified images but field p"):
         ma.camera_info_to_camera(wire(msg), rectified=True)
+
+
+def test_exchange_batch_round_trip_keeps_increments_scale_and_acks():
+    from nav_msgs.msg import Path
+
+    from msg_adapters.exchange import batch_to_path, exchange_topic, path_to_batch
+    from vings_core.exchange import IncrementBatch
+    from vings_core.geometry import np_pose, np_so3_exp, sim3
+
+    rng = np.random.default_rng(4)
+    incs = {1_000_000_123: np_pose(np_so3_exp(rng.normal(size=3)), rng.normal(size=3)),
+            2_000_000_456: sim3(np_so3_exp(rng.normal(size=3)), rng.normal(size=3), 0.8)}
+    b = IncrementBatch("loop_closer", 17, incs, {"frontend": 12})
+    msg = deserialize_message(serialize_message(batch_to_path(b, "map")), Path)
+    assert msg.header.frame_id == "map" and exchange_topic("mapper") == "/vings/exchange/mapper"
+    back = path_to_batch(msg, "loop_closer")
+    assert back.source == "loop_closer" and back.seq == 17 and back.acks == {"frontend": 12}
+    assert set(back.increments) == set(incs)
+    for s, C in incs.items():
+        np.testing.assert_allclose(back.increments[s], C, atol=1e-12)
+
+
+def test_exchange_batch_malformed_message_names_the_topic():
+    from msg_adapters.exchange import batch_to_path, path_to_batch
+    from vings_core.exchange import IncrementBatch
+
+    msg = batch_to_path(IncrementBatch("mapper", 3, {5: np.eye(4)}))
+    msg.poses[0].pose.orientation.w = 0.0
+    with pytest.raises(InputError, match="/vings/exchange/mapper.poses.0..pose"):
+        path_to_batch(msg, "mapper")
