@@ -1,4 +1,4 @@
-"""Mapping benchmark (issue 5): quality, score manager, pose refinement, storage tiers, speed.
+"""Mapping benchmark: quality, score manager, pose refinement, storage tiers, speed.
 
 Synthetic scenes come from ``vings_core.sim`` (the scenes ``vings sim`` writes), rendered in memory
 with ground-truth poses and depth; keyframes are every ``--kf-every``-th frame and get

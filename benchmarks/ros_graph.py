@@ -1,4 +1,4 @@
-"""ROS node graph figures (issue 6). Last line: one JSON object.
+"""ROS node graph figures. Last line: one JSON object.
 
 Experiments on one synthetic `room` sequence:
 

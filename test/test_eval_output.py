@@ -339,8 +339,8 @@ def test_ctrl_c_while_the_mapper_drains_its_queue_stops_it(tmp_path):
                    RunConfig(sync=False, checkpoint_every=0, max_mapper_lag=1000), progress=False)
     stop = r._stop_worker
     timers = []
-    # the mapper starts only when tracking has ended, so a backlog is certain at the Ctrl-C (on a
-    # loaded machine the GIL-starved front end used to let the mapper catch up first: no drain)
+    # the mapper starts only when tracking has ended, so a backlog is certain at the Ctrl-C (otherwise,
+    # on a loaded machine, a GIL-starved front end can let the mapper catch up: nothing to drain)
     tracking_done = threading.Event()
     add = r.mapper.add_keyframe
 

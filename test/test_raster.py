@@ -348,7 +348,7 @@ def test_two_clamped_splats_composite_alike_in_float32_and_float64():
 
 def test_reference_is_finite_for_a_centre_in_the_camera_plane():
     # camera z of the second centre is exactly 0 (culled by both): the reference's low-pass screen
-    # position and distortion depth mapping used to divide by it (NaN distortion and gradients)
+    # position and distortion depth mapping must not divide by it (distortion and gradients stay finite)
     cam = CameraModel(width=32, height=24, fx=30.0, fy=30.0, cx=15.5, cy=11.5)
     g = [torch.tensor([[0.0, 0.0, 2.0], [0.3, 0.1, 0.0]], dtype=F64),
          torch.tensor([[0.0, 0.0, 0.0, 1.0]] * 2, dtype=F64), torch.full((2, 2), 0.2, dtype=F64),
