@@ -19,7 +19,7 @@ from geometry_msgs.msg import Point, Pose, PoseStamped, Quaternion
 from nav_msgs.msg import Odometry, Path
 
 from vings_core.errors import InputError
-from vings_core.geometry import np_quat_to_rotmat, np_rotmat_to_quat
+from vings_core.geometry import check_rigid_pose, np_quat_to_rotmat, np_rotmat_to_quat
 from vings_core.types import PoseEstimate, Trajectory
 
 from .stamps import header_ns, make_header
@@ -46,15 +46,11 @@ def ros_cov_to_tangent(cov: np.ndarray, T_wc: np.ndarray) -> np.ndarray:
 
 
 def _check_pose(T: np.ndarray, where: str) -> np.ndarray:
-    T = np.asarray(T, dtype=np.float64)
-    if T.shape != (4, 4) or not np.all(np.isfinite(T)):
-        raise InputError(f"{where}: pose must be a finite 4x4 matrix, got shape {T.shape}")
-    R = T[:3, :3]
-    if np.abs(R.T @ R - np.eye(3)).max() > 1e-4 or np.linalg.det(R) < 0:
-        # a scaled matrix or a reflection has no quaternion: it would be published as another rotation
-        raise InputError(f"{where}: the rotation block is not a rotation (R^T R - I up to "
-                         f"{np.abs(R.T @ R - np.eye(3)).max():.2g}, det {np.linalg.det(R):.3g})")
-    return T
+    """``T`` as a float64 4x4 rigid transform (to 1e-4): a scaled matrix or a reflection has no
+    quaternion, it would be published as another rotation. InputError naming ``where`` otherwise."""
+    if np.shape(T) != (4, 4):
+        raise InputError(f"{where}: pose must be a finite 4x4 matrix, got shape {np.shape(T)}")
+    return check_rigid_pose(T, where, tol=1e-4, error=InputError)
 
 
 def matrix_to_pose(T: np.ndarray, where: str = "pose") -> Pose:

@@ -17,7 +17,7 @@ from vings_core.frontend import Frontend, FrontendConfig
 from vings_core.frontend.graph import Edge
 from vings_core.frontend.projective import (Intrinsics, grid_points, normalized_rays, project,
                                             relative_poses, transform_h)
-from vings_core.frontend.tracker import _KF
+from vings_core.frontend.window import WindowKeyframe
 from vings_core.geometry import se3_exp
 from vings_core.types import CameraModel
 
@@ -194,22 +194,22 @@ def test_window_ba_and_depth_variance_fix_scale_when_the_oldest_pair_only_rotate
     d = 1.0 / (1.0 + 3.0 * torch.rand(M, P, generator=torch.Generator().manual_seed(1), dtype=DT))
     gen = torch.Generator().manual_seed(2)
     img = np.zeros((CAM.height, CAM.width), np.uint8)
-    fe.window = [_KF(1000 + k, k, img, np.zeros(img.shape + (3,), np.uint8),
-                     np.ones((fe.h, fe.w)), T[k].clone(), d[k].clone()) for k in range(M)]
+    fe.window = [WindowKeyframe(1000 + k, k, img, np.zeros(img.shape + (3,), np.uint8),
+                                np.ones((fe.h, fe.w)), T[k].clone(), d[k].clone()) for k in range(M)]
     for a in range(M):
         for b in range(M):
             if a != b and abs(a - b) <= 2:
                 tg = _flow(T, d, torch.tensor([a]), torch.tensor([b]), fe.rays, fe.K)[0]
                 tg = tg + 0.3 * torch.randn(tg.shape, generator=gen, dtype=DT)
                 fe.graph.add(Edge(1000 + a, 1000 + b, tg.numpy(), np.ones(P)))
-    res = fe._window_ba(4)
+    res = fe.win.bundle_adjust(4)
     assert res is not None
     T_after = torch.stack([k.T_cw for k in fe.window])
     # the gauge: poses 0 and 2 held, pose 1 (rotation only w.r.t. pose 0) refined
     assert torch.allclose(T_after[0], T[0], atol=1e-12)
     assert torch.allclose(T_after[2], T[2], atol=1e-12)
     assert float((T_after[1] - T[1]).abs().max()) > 1e-9
-    fe._after_window_change(res.ne)
+    fe.win.after_change(res.ne)
     rel = torch.stack([k.var for k in fe.window]).sqrt() / torch.stack([k.d for k in fe.window])
     assert float((rel < fe.cfg.max_rel_depth_std).double().mean()) > 0.9   # old code: 0.00
     assert float(rel.median()) < 0.05                                        # old code: ~4.9

@@ -268,7 +268,7 @@ def test_triangulate_grid_finds_depth_by_1d_search():
 
 def test_gain_offset_and_rotation_only_residual():
     from vings_core.frontend.flow import gain_offset
-    from vings_core.frontend.tracker import rotation_only_residual
+    from vings_core.frontend.initialise import rotation_only_residual
     from vings_core.geometry import np_so3_exp
     img = _texture().astype(np.float32)
     mask = np.ones(img.shape, bool)

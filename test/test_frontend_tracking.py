@@ -303,7 +303,7 @@ def test_non_finite_flow_is_ignored_not_a_silent_freeze(box_sequence):
     from vings_core.frontend.ba import MotionResult
     nan_mo = MotionResult(torch.eye(4, dtype=torch.float64), torch.eye(6), float("nan"), 1.0, 0.0, 1)
     gf = type("G", (), {"conf_frac": 1.0})()
-    assert "residual RMS" in fe._check_track(gf, nan_mo)
+    assert "residual RMS" in fe.motion.check(gf, nan_mo)
 
 
 def test_constant_velocity_prediction_follows_the_time_stamps(box_sequence):
@@ -315,7 +315,8 @@ def test_constant_velocity_prediction_follows_the_time_stamps(box_sequence):
     keep = [k for k in range(24) if k not in (15, 16)]
     prev = None
     for b in keep:
-        T_pred = fe._predict(frames[b].stamp_ns).numpy() if prev is not None and prev >= 10 else None
+        T_pred = (fe.motion.predict(frames[b].stamp_ns, fe.window[-1].T_cw).numpy()
+                  if prev is not None and prev >= 10 else None)
         fe.process(frames[b])
         if T_pred is not None:
             T_true = np.linalg.inv(fe.pose(frames[b].stamp_ns))
@@ -325,11 +326,12 @@ def test_constant_velocity_prediction_follows_the_time_stamps(box_sequence):
     # across the gap and right after it the error stays at the level of ordinary frames
     assert errs[(14, 17)] < 3 * normal + 1e-3 and errs[(17, 18)] < 3 * normal + 1e-3
     # a very long gap: the extrapolation is held at MAX_VELOCITY_RATIO intervals
-    from vings_core.frontend.tracker import MAX_VELOCITY_RATIO
-    last_s, T_last = fe._last
-    span = last_s - fe._prev[0]
-    far = fe._predict(last_s + 1000 * span).numpy()
-    cap = fe._predict(last_s + int(MAX_VELOCITY_RATIO * span)).numpy()
+    from vings_core.frontend.tracking import MAX_VELOCITY_RATIO
+    last_s = fe.motion.last.stamp
+    span = last_s - fe.motion.prev.stamp
+    T_kf = fe.window[-1].T_cw
+    far = fe.motion.predict(last_s + 1000 * span, T_kf).numpy()
+    cap = fe.motion.predict(last_s + int(MAX_VELOCITY_RATIO * span), T_kf).numpy()
     assert np.allclose(far, cap, atol=1e-9)
 
 

@@ -111,7 +111,7 @@ def test_imu_only_file_has_no_camera(tmp_path):
     ("intrinsics: [1, 2, 3, 4]\nresolution: [4, 4]\ndistortion_model: equidistant\n"
      "distortion_coefficients: [0.1, 0.2]", "equidistant needs 4 coefficients"),
     ("intrinsics: [1, 2, 3, 4]\nresolution: [4, 4]\nT_BS: {data: [2, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1]}",
-     "T_BS is not a rigid transform"),
+     "T_BS: not a rigid pose"),
     ("foo: 1", "no camera calibration found"),
     ("a: [unclosed", "not valid YAML"),
     ("- 1\n- 2", "expected a YAML mapping"),

@@ -312,7 +312,7 @@ def test_bad_quaternion_raises():
     # a matrix whose rotation block is no rotation has no quaternion: refused, not published as
     # another rotation (a reflection came out as the identity)
     for bad in (np.diag([1.0, 1.0, -1.0, 1.0]), np.diag([2.0, 2.0, 2.0, 1.0])):
-        with pytest.raises(InputError, match="odom: the rotation block is not a rotation"):
+        with pytest.raises(InputError, match="odom: not a rigid pose"):
             ma.matrix_to_pose_stamped(bad, 1, "map", "odom")
 
 

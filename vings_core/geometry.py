@@ -103,6 +103,27 @@ def pose_inverse(T: torch.Tensor) -> torch.Tensor:
     return Ti
 
 
+def project_rotation(R: torch.Tensor) -> torch.Tensor:
+    """Nearest rotations (Frobenius) of ``(..., 3, 3)`` near-rotation matrices: SVD
+    ``U S V^T -> U diag(1, 1, det(U V^T)) V^T`` (the last column of ``U`` flipped where
+    ``U V^T`` is a reflection). Same dtype and device as ``R``."""
+    U, _, Vh = torch.linalg.svd(R)
+    det = torch.linalg.det(U @ Vh)
+    flip = torch.tensor([1.0, 1.0, -1.0], dtype=R.dtype, device=R.device)
+    U = torch.where(det[..., None, None] < 0, U * flip, U)
+    return U @ Vh
+
+
+def orthonormalize_pose(T: torch.Tensor) -> torch.Tensor:
+    """``(..., 4, 4)`` transforms with the rotation block projected onto SO(3)
+    (:func:`project_rotation`) and the last row set to ``0 0 0 1`` (a new tensor; the translation
+    is kept)."""
+    out = T.clone()
+    out[..., :3, :3] = project_rotation(T[..., :3, :3])
+    out[..., 3, :] = torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=T.dtype, device=T.device)
+    return out
+
+
 def transform_points(T: torch.Tensor, p: torch.Tensor) -> torch.Tensor:
     """Apply ``(4, 4)`` (or broadcastable ``(..., 4, 4)``) ``T`` to points ``(..., 3)``."""
     return (p[..., None, :] @ T[..., :3, :3].transpose(-1, -2))[..., 0, :] + T[..., :3, 3]
@@ -153,11 +174,8 @@ def np_pose(R: np.ndarray, t: np.ndarray) -> np.ndarray:
 
 def np_project_rotation(R: np.ndarray) -> np.ndarray:
     """Nearest rotations (Frobenius) of ``(..., 3, 3)`` near-rotation matrices:
-    SVD ``U S V^T -> U diag(1, 1, det(U V^T)) V^T``."""
-    U, _, Vt = np.linalg.svd(np.asarray(R, np.float64))
-    U = U.copy()
-    U[..., :, 2] *= np.sign(np.linalg.det(U @ Vt))[..., None]
-    return U @ Vt
+    SVD ``U S V^T -> U diag(1, 1, det(U V^T)) V^T`` (float64; :func:`project_rotation`)."""
+    return project_rotation(torch.from_numpy(np.array(R, np.float64))).numpy()
 
 
 def np_pose_compose(A: np.ndarray, B: np.ndarray) -> np.ndarray:
@@ -302,3 +320,31 @@ def sim3_apply_to_pose(C: np.ndarray, T_wc: np.ndarray) -> np.ndarray:
 def pose_increment(T_new: np.ndarray, T_old: np.ndarray) -> np.ndarray:
     """World-frame rigid increment ``C`` with ``T_new = C T_old`` (4x4 ``T_wc``, float64)."""
     return np.asarray(T_new, np.float64) @ np_pose_inverse(np.asarray(T_old, np.float64))
+
+
+def check_sim3(C: np.ndarray | torch.Tensor, what: str, tol: float = 1e-6,
+               error: type[Exception] | None = None) -> np.ndarray:
+    """Check that ``C`` is a finite 4x4 similarity ``[[s R, t], [0, 1]]`` (``s > 0``, ``R`` a rotation
+    to ``tol`` as in :func:`check_rigid_pose`) and return it as a float64 array (a copy); ``error``
+    (default :class:`~vings_core.errors.InputError`) is raised with a message starting with ``what``."""
+    if error is None:
+        from .errors import InputError as error
+    if torch.is_tensor(C):
+        C = C.detach().cpu().numpy()
+    C = np.array(C, dtype=np.float64)
+    if C.shape != (4, 4):
+        raise error(f"{what}: expected a 4x4 similarity, got shape {C.shape}")
+    if not np.isfinite(C).all():
+        raise error(f"{what}: similarity has non-finite entries")
+    s = sim3_scale(C)
+    if not s > 0:
+        raise error(f"{what}: not a similarity: the linear block has determinant {s ** 3:.3g} (scale^3 "
+                    f"must be positive)")
+    T = C.copy()
+    T[:3, :3] /= s
+    dev = float(rigid_deviation(T))
+    if dev > tol:
+        raise error(f"{what}: not a similarity [[s R, t], [0, 1]]: the linear block over its scale "
+                    f"{s:.6g} is not a rotation, or the last row is not 0 0 0 1 (deviation {dev:.2g} > "
+                    f"{tol:.2g})")
+    return C

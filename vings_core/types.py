@@ -13,6 +13,7 @@ Conventions (see docs/data_contracts.md):
 """
 from __future__ import annotations
 
+import enum
 from dataclasses import dataclass, field, replace
 from typing import Any, Optional
 
@@ -299,14 +300,39 @@ class Keyframe:
                                  f" from the camera model")
 
 
+class TrackState(str, enum.Enum):
+    """Tracking state of the visual front end (and of each frame it posed).
+
+    * ``WAITING``: no map segment yet; waiting for enough parallax to initialise one.
+    * ``TRACKING``: the frame was posed against the keyframe window.
+    * ``LOST``: tracking failed; the pose is the last good one.
+
+    A ``str`` subclass: a member equals, hashes and prints (``str``, f-strings, ``%s``,
+    ``json.dumps``) as its value, so ``TrackState.TRACKING == "tracking"``.
+    """
+
+    WAITING = "waiting"
+    TRACKING = "tracking"
+    LOST = "lost"
+
+    def __str__(self) -> str:
+        return self.value
+
+    def __format__(self, spec: str) -> str:
+        return format(self.value, spec)
+
+
 @dataclass
 class PoseEstimate:
     """Front-end output for one frame: ``T_wc`` (cam0-to-world) with a 6x6 covariance of the
-    left-multiplied tangent ``[rho (m), phi (rad)]`` (``None`` if unknown), a tracking state and
-    whether the frame became a keyframe."""
+    left-multiplied tangent ``[rho (m), phi (rad)]`` (``None`` if unknown), a tracking state
+    (:class:`TrackState`; its string value is accepted) and whether the frame became a keyframe."""
 
     stamp_ns: int
     T_wc: np.ndarray
     covariance: Optional[np.ndarray] = None
-    state: str = "tracking"  # "waiting" | "tracking" | "lost"
+    state: TrackState = TrackState.TRACKING
     is_keyframe: bool = False
+
+    def __post_init__(self) -> None:
+        self.state = TrackState(self.state)

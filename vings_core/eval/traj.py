@@ -25,7 +25,7 @@ from typing import Optional, Sequence
 import numpy as np
 
 from ..errors import InputError
-from ..geometry import np_project_rotation, np_so3_exp, np_so3_log
+from ..geometry import check_rigid_pose, np_so3_exp, np_so3_log
 from ..types import Trajectory
 from .align import apply_sim3, umeyama
 
@@ -53,19 +53,13 @@ def _check_sorted(traj: Trajectory, name: str) -> Trajectory:
         traj = Trajectory(st, traj.poses[order])
     if not np.all(np.isfinite(traj.poses)):
         raise InputError(f"{name} trajectory contains non-finite poses")
-    R = traj.poses[:, :3, :3]
-    dev = np.abs(np.swapaxes(R, 1, 2) @ R - np.eye(3)).max()
-    if dev > 1e-3:
-        raise InputError(f"{name} trajectory has rotation matrices that are not orthonormal "
-                         f"(|R^T R - I| up to {dev:.3g})")
-    bad = np.linalg.det(R) < 0
+    bad = np.linalg.det(traj.poses[:, :3, :3]) < 0
     if bad.any():
         raise InputError(f"{name} trajectory has {int(bad.sum())} reflections (rotation blocks with "
                          f"determinant -1, a left-handed frame), e.g. at stamp {int(traj.stamps_ns[bad][0])} ns")
-    if dev > 1e-12:  # e.g. KITTI poses printed with few digits: project onto SO(3)
-        traj = Trajectory(traj.stamps_ns, traj.poses.copy())
-        traj.poses[:, :3, :3] = np_project_rotation(R)
-    return traj
+    # e.g. KITTI poses printed with few digits: projected onto SO(3)
+    return Trajectory(traj.stamps_ns, check_rigid_pose(traj.poses, f"{name} trajectory", tol=1e-3,
+                                                       error=InputError, project=True))
 
 
 def _angle_deg(R: np.ndarray) -> np.ndarray:

@@ -2,7 +2,8 @@
 with Schur complement, reduced pose system export, depth uncertainty, dense depth, per-frame tracking.
 
 Main entry point: :class:`Frontend` (``Frontend(config, camera)``, ``process(frame)``,
-``pop_keyframes()``, ``set_poses(...)``, ``state``/``reason``). See docs/frontend.md.
+``pop_keyframes()``, ``set_poses(...)``, ``apply_increments(...)``, ``state``/``reason``). See
+docs/frontend.md.
 """
 from .ba import PoseSystem, bundle_adjust, motion_only, reduced_pose_system
 from .config import FrontendConfig

@@ -32,6 +32,7 @@ import numpy as np
 import yaml
 
 from ..errors import InputError
+from ..geometry import check_rigid_pose
 from ..types import Calibration, CameraModel
 from ..util import atomic_write_text, describe_yaml_error, read_utf8_text
 
@@ -203,11 +204,8 @@ def _matrix(v: Any, n: int, where: str, key: str) -> np.ndarray:
 
 
 def _rigid(T: np.ndarray, where: str, key: str) -> np.ndarray:
-    R = T[:3, :3]
-    if not np.allclose(R @ R.T, np.eye(3), atol=1e-3) or not np.allclose(T[3], [0, 0, 0, 1]):
-        raise InputError(f"{where}: {key} is not a rigid transform (rotation not orthonormal or "
-                         f"last row not [0 0 0 1])")
-    return T
+    """The 4x4 ``T`` read from ``key`` if it is a rigid transform (to 1e-3), else InputError."""
+    return check_rigid_pose(T, f"{where}: {key}", tol=1e-3, error=InputError)
 
 
 def read_yaml_doc(path: str | os.PathLike) -> dict:

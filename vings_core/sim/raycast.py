@@ -19,6 +19,7 @@ from dataclasses import dataclass
 import numba as nb
 import numpy as np
 
+from ..geometry import check_rigid_pose
 from ..types import CameraModel
 from .quads import QuadSet
 from .textures import LEVEL_OFFSETS, LEVELS, SIZE, TextureAtlas
@@ -397,13 +398,10 @@ def _antialias_edges(start, items, O, U, V, N, E, zmin, tex_id, tile, offs, tint
 
 
 def _check_pose(T_wc: np.ndarray) -> np.ndarray:
-    T = np.asarray(T_wc, dtype=np.float64)
-    if T.shape != (4, 4) or not np.all(np.isfinite(T)):
-        raise ValueError(f"T_wc must be a finite 4x4 matrix, got shape {T.shape}")
-    R = T[:3, :3]
-    if np.abs(R.T @ R - np.eye(3)).max() > 1e-6:
-        raise ValueError("T_wc rotation is not orthonormal")
-    return T
+    """``T_wc`` as a float64 4x4 rigid transform (to 1e-6); ValueError otherwise."""
+    if np.shape(T_wc) != (4, 4):
+        raise ValueError(f"T_wc must be a finite 4x4 matrix, got shape {np.shape(T_wc)}")
+    return check_rigid_pose(T_wc, "T_wc", tol=1e-6, error=ValueError)
 
 
 def raycast(quads: QuadSet, atlas: TextureAtlas, camera: CameraModel, T_wc: np.ndarray,
