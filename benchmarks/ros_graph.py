@@ -6,7 +6,7 @@ Experiments on one synthetic `room` sequence:
   ``backpressure``) versus `vings run --sync` on the same MCAP with the same params file: Sim(3)
   ATE of each (graph: the final /vings/path), their relative difference, and the front end alone
   (no mapper) as a reference. Both exchange poses with the same classes and write-back policy
-  (``run.pose_writeback``; ``--writeback`` overrides it for both).
+  (``exchange.mapper``; ``--writeback`` overrides it for both).
 * ``live``: replay at 20 Hz without back-pressure (policy ``keep_newest``): fraction of frames that
   get odometry, and publish -> odometry latency (receive wall clock minus publish wall clock) p50/p95.
 * ``resume``: the mapper is killed (SIGKILL) mid-run, once its checkpoint holds keyframes and
@@ -172,7 +172,7 @@ def main() -> int:
     ap.add_argument("--work", default=None)
     ap.add_argument("--only", default="parity,live,resume", help="experiments to run (comma list)")
     ap.add_argument("--writeback", default=None, choices=("none", "all", "consistent"),
-                    help="run.pose_writeback for both the offline run and the graph")
+                    help="exchange.mapper (the write-back policy for the mapper's refinements) for both the offline run and the graph")
     ap.add_argument("-p", "--param", action="append", default=[], metavar="SECTION.KEY=VALUE",
                     help="extra ROS parameter for both graph nodes (e.g. ros.mapper_threads=1)")
     args = ap.parse_args()
@@ -199,9 +199,9 @@ def main() -> int:
     mp = work / "bench_params.yaml"
     text = "/**:\n  ros__parameters:\n    mapping:\n      iters_per_keyframe: 20\n      refine_iters: 3\n"
     if args.writeback:
-        text += f"    run:\n      pose_writeback: {args.writeback}\n"
+        text += f"    exchange:\n      mapper: {args.writeback}\n"
     mp.write_text(text)
-    graph_params = ([] if not args.writeback else [f"run.pose_writeback={args.writeback}"]) + list(args.param)
+    graph_params = ([] if not args.writeback else [f"exchange.mapper={args.writeback}"]) + list(args.param)
     result["uptime_start"] = os.getloadavg()
     from vings_core.frontend import Frontend, FrontendConfig
     from vings_core.config import load_section

@@ -24,7 +24,7 @@ import threading
 import time
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Callable, Optional
+from typing import Callable, Optional, Protocol
 
 import numpy as np
 import torch
@@ -34,14 +34,15 @@ from .errors import InputError, VingsError
 from .eval.image import psnr, ssim
 from .eval.output import CHECKPOINT_FILE, RUN_RENDER_PREFIX, RunOutput, metrics_template, peak_rss_mb  # noqa: F401
 from .eval.traj import evaluate_trajectory
-from .geometry import np_pose_compose, np_pose_inverse, np_se3_log, rotation_angle_deg
+from .exchange import ExchangeConfig, IncrementBatch, PoseFollower, PoseKeeper
+from .geometry import rotation_angle_deg
 from .io.base import Source, SourceOptions
-from .types import Frame, Keyframe, Trajectory
+from .stages import MAPPER_SOURCE
+from .stages import map_keyframe as _map_step
+from .legacy_links import FrontendPoseLink, MapperPoseLink, PoseCorrections, PoseUpdates, map_keyframe  # noqa: F401  TEMPORARY
+from .types import Frame, Keyframe, TrackState, Trajectory
 
 log = logging.getLogger("vings.run")
-
-WRITEBACK_POLICIES = ("none", "all", "consistent")
-
 
 @dataclass
 class RunConfig:
@@ -58,14 +59,11 @@ class RunConfig:
     ``max_mapper_lag``: without ``sync``, keyframes that may wait for the mapper thread; tracking
     waits when that many are queued, so memory stays bounded and the mapper's refinements reach
     the front end during the run (0 = no bound).
-    ``pose_writeback``: what the front end does with the mapper's pose refinements (see
-    :class:`FrontendPoseLink`): ``none`` (never applied; the mapper is told to undo them),
-    ``all`` (every correction applied), ``consistent`` (applied only when the front end's own
-    visual evidence agrees: the corrections of keyframes in its BA window must pass a chi-square
-    test on the Schur-reduced pose information, at ``writeback_confidence``; corrections of
-    keyframes outside the window are not applied). The ROS graph reads the same fields (section
-    ``run``), so `vings run` and the nodes exchange poses the same way.
+    The pose exchange between the stages has its own section, ``exchange``
+    (:class:`~vings_core.exchange.ExchangeConfig`).
     """
+
+    RENAMED = {"pose_writeback": "exchange.mapper", "writeback_confidence": "exchange.confidence"}
 
     width: int = 0
     height: int = 0
@@ -80,16 +78,10 @@ class RunConfig:
     save_renders: int = 6
     checkpoint_every: int = 20
     max_mapper_lag: int = 8
-    pose_writeback: str = "consistent"
-    writeback_confidence: float = 0.99
 
     def validate(self) -> None:
         if self.width < 0 or self.height < 0:
             raise ValueError("width/height must be >= 0")
-        if self.pose_writeback not in WRITEBACK_POLICIES:
-            raise ValueError(f"pose_writeback must be one of {WRITEBACK_POLICIES}, got {self.pose_writeback!r}")
-        if not 0 < self.writeback_confidence < 1:
-            raise ValueError(f"writeback_confidence must be in (0, 1), got {self.writeback_confidence}")
         if self.eval_keyframes < 0 or self.eval_novel < 0 or self.save_renders < 0:
             raise ValueError("eval_keyframes, eval_novel and save_renders must be >= 0")
         if self.gt_kf_max_gap < 1:
@@ -198,285 +190,30 @@ class _GtKeyframer:
         return T, kf
 
 
-# ------------------------------------------------------------------------------ pose exchange
-#
-# The front end and the mapper both hold every keyframe pose and both change them: the front end's
-# window BA moves keyframes after it emitted them, the mapper's pose refinement moves them too. The
-# two sides exchange *increments*, never overwrite each other with absolute poses: an absolute pose
-# is stale by the time it arrives (the other side moved the keyframe meanwhile) and overwriting
-# with it silently undoes that move. (That was the bug behind `vings run --sync` ATE 0.0247 m vs
-# 0.0011 m for the graph: after every mapped keyframe the front end's newest window-BA poses were
-# replaced by the mapper's older ones.) Each side remembers, per keyframe, the last pose it
-# exchanged with the other side, so an increment is never applied twice and never echoed back.
-# Messages cross when both sides run at once (the graph, `vings run` without --sync): the front end
-# may send a pose before it has seen a correction the mapper already sent. So corrections travel in
-# numbered batches and every front-end update says which batch it saw last (`ack`); the mapper
-# reads the update against its picture of the front end *as of that batch*, with the corrections
-# still in flight left out (otherwise the update would undo them, and the two sides would disagree
-# for good once the front end accepted them). In ROS the batch number is the corrections Path's
-# header stamp, and the ack the stamp of the front end's keyframe-pose Path.
-# `vings run` calls these classes directly; the nodes call the same classes across topics.
+class RunnerStage(Protocol):
+    """A further pose writer in ``vings run`` (a loop closer, or a test's stage): it follows the
+    keeper's batches and offers its own, through the same exchange as the nodes."""
 
+    name: str
 
-class PoseCorrections(dict):
-    """``{stamp_ns: C}`` world-frame increments from one mapper refinement, numbered ``batch``
-    (increasing; 0 = unnumbered)."""
+    def add_keyframe(self, kf: Keyframe) -> None:
+        """A keyframe the front end emitted (its pose as emitted)."""
 
-    def __init__(self, items=(), batch: int = 0) -> None:
-        super().__init__(items)
-        self.batch = int(batch)
+    def receive(self, batch: IncrementBatch) -> None:
+        """A batch of the keeper (the front end)."""
 
-
-class PoseUpdates(dict):
-    """``{stamp_ns: T_wc}`` front-end keyframe poses, with ``ack``: the last correction batch the
-    front end had processed (accepted or rejected) when it sent them (None = unknown: every batch)."""
-
-    def __init__(self, items=(), ack: Optional[int] = None) -> None:
-        super().__init__(items)
-        self.ack = ack
-
-
-def pose_correction(T_new: np.ndarray, T_old: np.ndarray) -> np.ndarray:
-    """World-frame left increment ``C`` with ``T_new = C @ T_old`` (4x4, T_wc convention)."""
-    return np.asarray(T_new, np.float64) @ np_pose_inverse(np.asarray(T_old, np.float64))
-
-
-def _differs(A: np.ndarray, B: np.ndarray, tol: float = 1e-7) -> bool:
-    return bool(np.abs(np.asarray(A) - np.asarray(B)).max() > tol)
-
-
-class MapperPoseLink:
-    """Mapper side of the pose exchange.
-
-    ``fe[s]``: the front end's pose of keyframe ``s`` as the mapper last learned it (packet pose,
-    then every update), advanced by the corrections the mapper sent. A front-end update ``P`` that
-    saw correction batches up to ``ack`` is applied as the increment ``P base^-1`` to the mapper's
-    pose, where ``base`` is ``fe[s]`` without the corrections of later batches (still in flight);
-    so the mapper's refinement is kept, and a correction the front end rejected is undone.
-    :meth:`refine` returns the mapper's refinement as increments for the front end."""
-
-    def __init__(self) -> None:
-        self.fe: dict[int, np.ndarray] = {}
-        #: updates for keyframes not added yet (the graph: still in the mapper's queue)
-        self.pending: dict[int, np.ndarray] = {}
-        #: corrections sent and not yet acknowledged: stamp -> [(batch, C), ...] oldest first
-        self.in_flight: dict[int, list[tuple[int, np.ndarray]]] = {}
-        self.batch = 0
-
-    def resumed(self, poses: dict[int, np.ndarray]) -> None:
-        """After loading a checkpoint: take the stored poses as the last exchanged ones."""
-        self.fe.update({int(s): np.array(T, np.float64) for s, T in poses.items()})
-
-    def keyframe_added(self, kf: Keyframe) -> None:
-        self.fe[int(kf.stamp_ns)] = kf.T_wc.detach().cpu().numpy().astype(np.float64).copy()
-
-    def apply_frontend_poses(self, mapper, poses: dict[int, np.ndarray]) -> int:
-        """Front-end keyframe poses (absolute ``T_wc``; a :class:`PoseUpdates` carries the batch
-        ``ack``, a plain dict counts as having seen every batch) -> increments on the mapper's
-        poses. Unknown stamps are ignored. Returns how many keyframes moved."""
-        ack = getattr(poses, "ack", None)
-        ack = self.batch if ack is None else int(ack)
-        have = mapper.keyframe_poses()
-        new = {}
-        for s, P in poses.items():
-            s = int(s)
-            if s not in have or s not in self.fe:
-                if s not in have:
-                    self.pending[s] = np.asarray(P, np.float64).copy()
-                    while len(self.pending) > 1000:
-                        self.pending.pop(min(self.pending))
-                continue
-            # corrections the front end had not seen yet when it sent P are not part of P; it will
-            # hold F P once it accepts them (F their product), and fe[s] already includes them: so
-            # the front end's own move is F P fe[s]^-1 (with no correction in flight: P fe[s]^-1)
-            ahead = np.asarray(P, np.float64).copy()
-            for b, C in self.in_flight.get(s, []):
-                if b > ack:
-                    ahead = np_pose_compose(C, ahead)
-            old, self.fe[s] = self.fe[s], ahead
-            if _differs(ahead, old, 1e-12):
-                new[s] = np_pose_compose(pose_correction(ahead, old), have[s])
-        self._acknowledged(ack)
-        if new:
-            mapper.set_keyframe_poses(new)
-        return len(new)
-
-    def _acknowledged(self, ack: int) -> None:
-        for s in list(self.in_flight):
-            left = [(b, C) for b, C in self.in_flight[s] if b > ack]
-            if left:
-                self.in_flight[s] = left
-            else:
-                del self.in_flight[s]
-
-    def refine(self, mapper, batch: Optional[int] = None) -> PoseCorrections:
-        """Run the mapper's pose refinement; returns ``{stamp: C}`` world-frame increments of the
-        keyframes it moved (``T_new = C T_old``), to be offered to the front end, numbered ``batch``
-        (default: the next number; always raised above the previous batch)."""
-        base = mapper.keyframe_poses()
-        refined = mapper.refine_poses()
-        out = PoseCorrections()
-        for s, T in refined.items():
-            if s in base and _differs(T, base[s], 1e-12):
-                out[int(s)] = pose_correction(T, base[s])
-        if out:
-            self.batch = max(self.batch + 1, int(batch or 0))
-            out.batch = self.batch
-            for s, C in out.items():
-                if s in self.fe:
-                    self.fe[s] = np_pose_compose(C, self.fe[s])
-                    self.in_flight.setdefault(s, []).append((self.batch, C))
-        return out
-
-
-class FrontendPoseLink:
-    """Front-end side of the pose exchange, with the write-back policy (``RunConfig.pose_writeback``).
-
-    ``sent[s]``: the pose of keyframe ``s`` the mapper holds as far as the front end knows (the
-    packet pose, every update sent, advanced by every correction received). :meth:`outgoing` returns
-    the keyframes whose front-end pose differs from it (window BA moved them, or a correction was
-    rejected: sending the front-end pose then makes the mapper undo it)."""
-
-    def __init__(self, cfg: Optional[RunConfig] = None) -> None:
-        self.cfg = cfg or RunConfig()
-        self.sent: dict[int, np.ndarray] = {}
-        self.ack = 0            # last correction batch processed (echoed with every update)
-        self.stats = dict(corrections=0, applied=0, rejected=0, tests=0, tests_failed=0, last_q=None,
-                          last_q_limit=None)
-        self._version = 0       # the front end's kf_pose_version at the last outgoing()
-        self._recheck: set[int] = set()   # keyframes with a correction since (maybe rejected)
-
-    def keyframe_sent(self, kf: Keyframe) -> None:
-        self.sent[int(kf.stamp_ns)] = kf.T_wc.detach().cpu().numpy().astype(np.float64).copy()
-        # compared at the next outgoing() whatever the write log says: a pose written after the
-        # packet was made, but before this call, would otherwise never be sent
-        self._recheck.add(int(kf.stamp_ns))
-
-    def outgoing(self, frontend) -> PoseUpdates:
-        """Keyframe poses to send to the mapper (absolute ``T_wc``), with the batch ``ack``. Only
-        keyframes the front end wrote since the last call, or that got a correction, are compared
-        (``frontend.keyframes_moved_since``): the cost does not grow with the history."""
-        stamps = set(frontend.keyframes_moved_since(self._version)) | self._recheck
-        self._version = frontend.kf_pose_version
-        self._recheck = set()
-        moved = PoseUpdates(ack=self.ack)
-        for s in sorted(stamps):
-            old = self.sent.get(int(s))
-            if old is None:
-                continue
-            P = frontend.pose(s)
-            if _differs(P, old):
-                moved[int(s)] = P.copy()
-                self.sent[int(s)] = P.copy()
-        return moved
-
-    def apply_corrections(self, frontend, corrections: dict[int, np.ndarray]) -> dict[int, np.ndarray]:
-        """Apply the mapper's increments the policy accepts; returns the applied ``{stamp: C}``."""
-        batch = getattr(corrections, "batch", 0)
-        self.ack = max(self.ack, int(batch))
-        corrections = {int(s): np.asarray(C, np.float64) for s, C in corrections.items() if int(s) in self.sent}
-        if not corrections:
-            return {}
-        for s, C in corrections.items():
-            self.sent[s] = np_pose_compose(C, self.sent[s])          # what the mapper now holds
-        self._recheck.update(corrections)     # a rejected one is undone by the next outgoing()
-        self.stats["corrections"] += len(corrections)
-        accepted = self._accept(frontend, corrections)
-        if accepted:
-            frontend.set_poses({s: np_pose_compose(C, frontend.pose(s)) for s, C in accepted.items()})
-        self.stats["applied"] += len(accepted)
-        self.stats["rejected"] += len(corrections) - len(accepted)
-        return accepted
-
-    def _accept(self, frontend, corrections: dict[int, np.ndarray]) -> dict[int, np.ndarray]:
-        policy = self.cfg.pose_writeback
-        if policy == "all":
-            return dict(corrections)
-        if policy == "none":
-            return {}
-        ok, q, limit = correction_consistency(frontend, corrections, self.cfg.writeback_confidence)
-        if q is not None:
-            self.stats["tests"] += 1
-            self.stats["tests_failed"] += int(not ok)
-            self.stats["last_q"], self.stats["last_q_limit"] = q, limit
-        return ok
-
-
-def correction_consistency(frontend, corrections: dict[int, np.ndarray],
-                           confidence: float = 0.99) -> tuple[dict[int, np.ndarray], Optional[float], Optional[float]]:
-    """Which mapper corrections the front end's visual evidence allows.
-
-    The corrections of keyframes in the front end's BA window form a joint perturbation ``x`` of the
-    window poses (left tangent of ``T_cw``); its cost under the Schur-reduced pose information ``H``
-    of the last window BA (``frontend.pose_system``, 1/px^2 units: flow residuals over their
-    sigma) is ``q = x^T H x``, chi-square with ``rank(H_xx)`` (at most ``6 n``) degrees of freedom
-    if the correction were within the front end's noise. ``x`` is the deviation of the corrected
-    poses from the BA's linearisation point, not just this correction: corrections accepted since
-    the last BA count too, so a series of small ones cannot walk away from the visual evidence.
-    They are accepted together iff ``q <= chi2.ppf(confidence, dof)``.
-    Keyframes outside the window are never accepted (no evidence to check them against).
-    Returns ``(accepted, q, limit)``; ``q``/``limit`` are None when no keyframe was in the window."""
-    from scipy.stats import chi2
-
-    ps = getattr(frontend, "pose_system", None)
-    if ps is None:
-        return {}, None, None
-    idx = {int(s): i for i, s in enumerate(ps.stamps_ns)}
-    inwin = {s: C for s, C in corrections.items() if s in idx}
-    if not inwin:
-        return {}, None, None
-    H = ps.H.detach().cpu().numpy().astype(np.float64)
-    T_lin = ps.T_cw.detach().cpu().numpy().astype(np.float64)
-    x = np.zeros(H.shape[0])
-    rows = []
-    for s, C in inwin.items():
-        i = idx[s]
-        T_wc_new = np_pose_compose(C, frontend.pose(s))
-        # T_cw_new = exp(xi) T_cw_lin  ->  xi = log(T_cw_new T_cw_lin^-1)
-        x[6 * i:6 * i + 6] = np_se3_log(np_pose_inverse(T_wc_new) @ np_pose_inverse(T_lin[i]))
-        rows.extend(range(6 * i, 6 * i + 6))
-    q = float(x @ H @ x)
-    ev = np.linalg.eigvalsh(H[np.ix_(rows, rows)])
-    dof = int((ev > 1e-9 * max(float(ev.max()), 1e-300)).sum())
-    if dof == 0:            # the window's BA constrains none of these poses: nothing to check against
-        return {}, None, None
-    limit = float(chi2.ppf(confidence, dof))
-    return (dict(inwin) if q <= limit else {}), q, limit
-
-
-def map_keyframe(mapper, link: MapperPoseLink, kf: Keyframe, refine: bool = True, chunk: int = 0,
-                 stop: Optional[Callable[[], bool]] = None) -> tuple[dict, dict[int, np.ndarray]]:
-    """One mapping step, the same in `vings run` and ``mapper_node``: add the keyframe, train
-    ``iters_per_keyframe`` iterations (in chunks of ``chunk`` when > 0, ending early once ``stop()``
-    is true: prompt shutdown), then (``refine``) the pose refinement. Returns the last training
-    stats and the refinement as increments ``{stamp: C}`` for the front end."""
-    mapper.add_keyframe(kf)
-    link.keyframe_added(kf)
-    later = link.pending.pop(int(kf.stamp_ns), None)
-    if later is not None:   # the front end moved it while it waited in the queue
-        link.apply_frontend_poses(mapper, {int(kf.stamp_ns): later})
-    iters = int(mapper.cfg.iters_per_keyframe)
-    step = iters if chunk <= 0 else int(chunk)
-    stats: dict = {}
-    done = 0
-    while done < iters:
-        if stop is not None and stop():
-            break
-        n = min(step, iters - done)
-        stats = mapper.train(n)
-        done += n
-    stats["iterations_total"] = done
-    corrections = (link.refine(mapper, batch=int(kf.stamp_ns)) if refine and not (stop is not None and stop())
-                   else PoseCorrections())
-    return stats, corrections
+    def poll(self) -> Optional[IncrementBatch]:
+        """Its own increments since the last call, or None."""
 
 
 class SlamRunner:
-    """Runs front end + mapper over a source and writes the output contract to ``out_dir``."""
+    """Runs front end + mapper (+ ``stages``) over a source and writes the output contract to
+    ``out_dir``."""
 
     def __init__(self, source: Source, out_dir: str | Path, params_file: Optional[str] = None,
                  run_cfg: Optional[RunConfig] = None, progress: bool = True,
-                 on_frame: Optional[Callable[[dict], None]] = None) -> None:
+                 on_frame: Optional[Callable[[dict], None]] = None,
+                 stages: tuple[RunnerStage, ...] = (), exchange_cfg: Optional[ExchangeConfig] = None) -> None:
         from .frontend import Frontend, FrontendConfig
         from .mapping import Mapper, MapperConfig
 
@@ -505,25 +242,29 @@ class SlamRunner:
         self._abort = False     # set when the run fails: the mapper thread drops what is queued
         self._mapper_done = threading.Event()
         self._partial_ckpt = False  # this run wrote checkpoint.partial.pt
-        self._pending_corrections: list[dict[int, np.ndarray]] = []
+        self._to_keeper: list[IncrementBatch] = []     # mapper batches, from the mapper thread
         self._lock = threading.Lock()
         self._queue: "queue.Queue[Optional[tuple[str, object]]]" = queue.Queue()
         # slots of the bounded mapper queue (mapper thread only, see max_mapper_lag)
         self._kf_queued = (threading.Semaphore(self.cfg.max_mapper_lag)
                            if self.cfg.max_mapper_lag and not self.cfg.sync else None)
         self._lag_warned = False
-        self.fe_link = FrontendPoseLink(self.cfg)     # pose exchange, as between the nodes
-        self.map_link = MapperPoseLink()
+        # the pose exchange, as between the nodes: the front end keeps the poses, the mapper and the
+        # further stages follow it
+        self.xcfg = exchange_cfg or load_section(ExchangeConfig, "exchange", params_file)
+        self.keeper = None if self.frontend is None else PoseKeeper(self.frontend, self.xcfg)
+        self.follower = PoseFollower(MAPPER_SOURCE, self.mapper)
+        self.stages = tuple(stages)
         self.out.prepare()      # after the configuration is known to be valid, before any work
 
     # --------------------------------------------------------------------------- mapping side
 
     def _map_keyframe(self, kf: Keyframe) -> None:
-        _, corrections = map_keyframe(self.mapper, self.map_link, kf, refine=self.frontend is not None,
-                                      chunk=10, stop=lambda: self._abort)
-        if corrections:
+        _, batch = _map_step(self.mapper, self.follower, kf, refine=self.frontend is not None,
+                             chunk=10, stop=lambda: self._abort)
+        if batch is not None:
             with self._lock:
-                self._pending_corrections.append(corrections)
+                self._to_keeper.append(batch)
         n = len(self.mapper.keyframe_poses())
         if self.cfg.checkpoint_every and n % self.cfg.checkpoint_every == 0 and not self._abort:
             # the previous run's checkpoint.pt stays until this run completes
@@ -537,8 +278,8 @@ class SlamRunner:
             finally:
                 if self._kf_queued is not None:
                     self._kf_queued.release()
-        else:  # "poses": front-end BA moved keyframes the mapper already holds
-            self.map_link.apply_frontend_poses(self.mapper, item)
+        else:  # "poses": the keeper's batch (front-end moves, accepted and refused increments)
+            self.follower.receive(item)
 
     def _mapper_loop(self) -> None:
         try:
@@ -584,7 +325,10 @@ class SlamRunner:
     def _submit(self, kf: Keyframe, worker: Optional[threading.Thread]) -> None:
         self._kf_stamps.append(kf.stamp_ns)
         self._keep_kf_image(len(self._kf_stamps) - 1, kf)
-        self.fe_link.keyframe_sent(kf)
+        if self.keeper is not None:
+            self.keeper.keyframe_sent(kf.stamp_ns, kf.T_wc.detach().cpu().numpy().astype(np.float64))
+        for st in self.stages:
+            st.add_keyframe(kf)
         self._dispatch("kf", kf, worker)
 
     def _keep_kf_image(self, index: int, kf: Keyframe) -> None:
@@ -625,22 +369,27 @@ class SlamRunner:
                 return
 
     def _take_corrections(self) -> None:
-        """Mapper refinements -> front end (through the write-back policy), before a frame."""
-        if self.frontend is None:
+        """The writers' batches (mapper refinements, further stages) -> front end, through their
+        write-back policies, before a frame."""
+        if self.keeper is None:
             return
         with self._lock:
-            pending, self._pending_corrections = self._pending_corrections, []
-        for corr in pending:
-            self.fe_link.apply_corrections(self.frontend, corr)
+            pending, self._to_keeper = self._to_keeper, []
+        pending += [b for b in (st.poll() for st in self.stages) if b is not None]
+        for batch in pending:
+            self.keeper.receive(batch)
 
-    def _send_moves(self, worker: Optional[threading.Thread]) -> None:
-        """Front-end keyframe poses that changed since last exchanged -> mapper, after a frame
-        and before its new keyframes (so the mapper refines from the front end's latest poses)."""
-        if self.frontend is None:
+    def _send_moves(self, worker: Optional[threading.Thread], seq_hint: int = 0) -> None:
+        """The keeper's batch (front-end moves since the last one, and what it did with the writers'
+        batches) -> mapper and further stages, after a frame and before its new keyframes (so the
+        mapper refines from the front end's latest poses)."""
+        if self.keeper is None:
             return
-        moved = self.fe_link.outgoing(self.frontend)
-        if moved:
-            self._dispatch("poses", moved, worker)
+        batch = self.keeper.outgoing(seq_hint)
+        if batch is not None:
+            for st in self.stages:
+                st.receive(batch)
+            self._dispatch("poses", batch, worker)
 
     # --------------------------------------------------------------------------------- run
 
@@ -665,43 +414,14 @@ class SlamRunner:
         try:
             for frame in self.source.frames():
                 n_frames += 1
-                self._raise_mapper_error()
-                self._take_corrections()
-                if self.gt_kf is not None:
-                    T, kf = self.gt_kf.process(frame)
-                    if T is not None:
-                        self._gt_poses[frame.stamp_ns] = T
-                    kfs = [kf] if kf is not None else []
-                    state = "tracking" if T is not None else "no ground truth"
-                else:
-                    ests = self.frontend.process(frame)
-                    kfs = self.frontend.pop_keyframes()
-                    state = ests[-1].state if ests else self.frontend.state
-                if frame.stamp_ns in keep_novel:
-                    self._frame_images[frame.stamp_ns] = frame.rgb().copy()
-                self._send_moves(worker)
-                for kf in kfs:
-                    self._submit(kf, worker)
+                state = self._track_frame(frame, worker, frame.stamp_ns in keep_novel)
                 bar.update(1)
                 bar.set_postfix_str(f"{state} kf={len(self._kf_stamps)}", refresh=False)
                 if self.on_frame is not None:
                     self.on_frame({"stamp_ns": frame.stamp_ns, "state": state,
                                    "keyframes": len(self._kf_stamps)})
-            if self.frontend is not None:
-                self._take_corrections()
-                kfs = self.frontend.finish()
-                self._send_moves(worker)
-                for kf in kfs:
-                    self._submit(kf, worker)
             bar.close()
-            if worker is not None and self._queue.qsize():
-                n_kf = sum(1 for m in list(self._queue.queue) if m is not None and m[0] == "kf")
-                log.info("tracking done; the mapper is finishing %d queued keyframe(s) (Ctrl-C stops it; "
-                         "the trajectory is kept)", n_kf)
-            self._stop_worker(worker)
-            self._raise_mapper_error()
-            self._take_corrections()
-            self._send_moves(None)
+            self._finish_stages(worker)
             # everything slow (evaluation renders) happens before any output file is replaced
             final = self._evaluate(n_frames)
         except BaseException as e:
@@ -713,6 +433,46 @@ class SlamRunner:
             self._save_partial()
             raise
         return self._write_final(final, t0)
+
+    def _track_frame(self, frame: Frame, worker: Optional[threading.Thread], keep_image: bool) -> TrackState:
+        """One frame: take the writers' batches, track it (or take its ground-truth pose), send the
+        keeper's batch, then its keyframes. Returns the frame's tracking state."""
+        self._raise_mapper_error()
+        self._take_corrections()
+        if self.gt_kf is not None:
+            T, kf = self.gt_kf.process(frame)
+            if T is not None:
+                self._gt_poses[frame.stamp_ns] = T
+            kfs = [kf] if kf is not None else []
+            state = TrackState.TRACKING if T is not None else TrackState.LOST
+        else:
+            ests = self.frontend.process(frame)
+            kfs = self.frontend.pop_keyframes()
+            state = ests[-1].state if ests else self.frontend.state
+        if keep_image:
+            self._frame_images[frame.stamp_ns] = frame.rgb().copy()
+        self._send_moves(worker, frame.stamp_ns)
+        for kf in kfs:
+            self._submit(kf, worker)
+        return state
+
+    def _finish_stages(self, worker: Optional[threading.Thread]) -> None:
+        """After the last frame: the front end's last keyframes, the mapper's queue, and a last
+        exchange so every stage ends at the same poses."""
+        if self.frontend is not None:
+            self._take_corrections()
+            kfs = self.frontend.finish()
+            self._send_moves(worker)
+            for kf in kfs:
+                self._submit(kf, worker)
+        if worker is not None and self._queue.qsize():
+            n_kf = sum(1 for m in list(self._queue.queue) if m is not None and m[0] == "kf")
+            log.info("tracking done; the mapper is finishing %d queued keyframe(s) (Ctrl-C stops it; "
+                     "the trajectory is kept)", n_kf)
+        self._stop_worker(worker)
+        self._raise_mapper_error()
+        self._take_corrections()
+        self._send_moves(None)
 
     def _stop_worker_after_failure(self, worker: Optional[threading.Thread]) -> None:
         while True:
@@ -743,7 +503,7 @@ class SlamRunner:
         """Every tracked frame's cam0 ``T_wc``."""
         if self.frontend is None:
             return Trajectory.from_poses(self._gt_poses)
-        return self.frontend.trajectory(states=("tracking",))
+        return self.frontend.trajectory(states=(TrackState.TRACKING,))
 
     def keyframe_trajectory(self) -> Trajectory:
         return Trajectory.from_poses(self.mapper.keyframe_poses())
@@ -762,9 +522,9 @@ class SlamRunner:
                         n_frames)
         m = metrics_template()
         if self.frontend is not None:
-            st = self.fe_link.stats
-            log.info("pose write-back (%s): %d mapper corrections, %d applied, %d rejected",
-                     self.cfg.pose_writeback, st["corrections"], st["applied"], st["rejected"])
+            st = self.keeper.stats
+            log.info("pose write-back (mapper: %s): %d increments received, %d applied, %d refused",
+                     self.xcfg.mapper, st["corrections"], st["applied"], st["rejected"])
         m.update(frames=n_frames, frames_tracked=len(traj), keyframes=len(kf_traj),
                  num_gaussians=int(self.mapper.num_gaussians))
         # with gt_poses the trajectory IS the ground truth: no ATE/RPE to report (null)

@@ -1,0 +1,47 @@
+"""Stage steps shared by ``vings run`` (:class:`~vings_core.pipeline.SlamRunner`) and the nodes, so
+both compute the same thing."""
+from __future__ import annotations
+
+from typing import Callable, Optional
+
+import numpy as np
+
+from .exchange import IncrementBatch, PoseFollower
+from .geometry import pose_increment
+from .types import Keyframe
+
+#: the mapper's source name in the pose exchange
+MAPPER_SOURCE = "mapper"
+
+
+def _differs(A: np.ndarray, B: np.ndarray, tol: float = 1e-12) -> bool:
+    return bool(np.abs(np.asarray(A) - np.asarray(B)).max() > tol)
+
+
+def map_keyframe(mapper, follower: PoseFollower, kf: Keyframe, refine: bool = True, chunk: int = 0,
+                 stop: Optional[Callable[[], bool]] = None) -> tuple[dict, Optional[IncrementBatch]]:
+    """One mapping step: add the keyframe to ``mapper`` (:class:`~vings_core.mapping.Mapper`) and to
+    its exchange ``follower``, train ``iters_per_keyframe`` iterations (in chunks of ``chunk`` when
+    > 0, ending early once ``stop()`` is true: prompt shutdown), then (``refine``) refine the poses.
+    Returns the last training stats and the refinement as an increment batch for the keeper (None
+    when no pose moved), numbered at least the keyframe's stamp."""
+    mapper.add_keyframe(kf)
+    follower.keyframe_added(int(kf.stamp_ns), kf.T_wc.detach().cpu().numpy().astype(np.float64))
+    iters = int(mapper.cfg.iters_per_keyframe)
+    step = iters if chunk <= 0 else int(chunk)
+    stats: dict = {}
+    done = 0
+    while done < iters:
+        if stop is not None and stop():
+            break
+        n = min(step, iters - done)
+        stats = mapper.train(n)
+        done += n
+    stats["iterations_total"] = done
+    if not refine or (stop is not None and stop()):
+        return stats, None
+    base = mapper.keyframe_poses()
+    refined = mapper.refine_poses()
+    moved = {int(s): pose_increment(T, base[s]) for s, T in refined.items()
+             if s in base and _differs(T, base[s])}
+    return stats, follower.send(moved, seq_hint=int(kf.stamp_ns))
