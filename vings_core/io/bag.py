@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import contextlib
 import struct
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Iterator, Optional
 
@@ -147,6 +148,26 @@ def _non_ros_mcap_channels(path: Path) -> list[str]:
         out += [f"{c.topic!r} ({c.message_encoding})" for c in summary.channels.values()
                 if c.message_encoding not in ("cdr", "ros1")]
     return out
+
+
+@dataclass
+class _Scan:
+    """What :meth:`BagSource._first_pass` keeps of one read: image stamps (ns) and the first image,
+    IMU stamps (ns) and values (gyro rad/s, accel m/s^2), the first usable CameraInfo, ground-truth
+    stamps (ns) and poses, how many messages per topic fell back to the receive time, and how many
+    IMU messages marked gyro / accel unavailable."""
+
+    img_st: list[int] = field(default_factory=list)
+    img_zero: int = 0
+    first_img: Optional[np.ndarray] = None
+    imu_st: list[int] = field(default_factory=list)
+    imu_v: list[tuple] = field(default_factory=list)
+    imu_missing: dict[str, int] = field(default_factory=lambda: {"gyro": 0, "accel": 0})
+    imu_zero: int = 0
+    cam_msg: object = None
+    gt_st: list[int] = field(default_factory=list)
+    gt_T: list[np.ndarray] = field(default_factory=list)
+    gt_zero: int = 0
 
 
 class BagSource(LoaderSource):
@@ -281,65 +302,70 @@ class BagSource(LoaderSource):
 
     # -- first pass ------------------------------------------------------------------------------
     def _first_pass(self, r) -> None:
+        """Read the chosen topics once: frame stamps, IMU, ground truth and calibration."""
+        scan = self._scan(r)
+        for topic, n, what in ((self.image_topic, scan.img_zero, "image(s)"),
+                               (self.imu_topic, scan.imu_zero, "IMU sample(s)"),
+                               (self.gt_topic, scan.gt_zero, "ground-truth pose(s)")):
+            if n:
+                self._warn(f"{self.path}:{topic}: {n} {what} with a zero header stamp; used the bag "
+                           f"receive time")
+        self._set_frame_stamps(scan.img_st)
+        if self.imu_topic:
+            self._set_bag_imu(scan.imu_st, scan.imu_v, scan.imu_missing)
+        if self.gt_topic and scan.gt_st:
+            self._set_bag_gt(scan.gt_st, scan.gt_T)
+        self._set_calibration(scan.cam_msg, scan.first_img)
+        if scan.first_img is not None:
+            self._first_img_dtype = str(scan.first_img.dtype)
+
+    def _scan(self, r) -> _Scan:
+        """One read of the image, IMU, camera-info and ground-truth topics (module doc, Memory)."""
         topics = [t for t in (self.image_topic, self.imu_topic, self.camera_info_topic, self.gt_topic)
                   if t]
         conns = [c for c in r.connections if c.topic in topics]
-        img_st: list[int] = []
-        img_zero = 0
-        first_img = None
-        imu_st: list[int] = []
-        imu_v: list[tuple] = []
-        imu_missing = {"gyro": 0, "accel": 0}
-        imu_zero = 0
-        cam_msg = None
-        gt_st: list[int] = []
-        gt_T: list[np.ndarray] = []
-        gt_zero = 0
+        scan = _Scan()
         for conn, t, raw in (r.messages(connections=conns) if conns else ()):
             topic = conn.topic
             if topic == self.image_topic:
                 s = header_stamp_ns(raw, self._ros1, f"{self.path}:{topic}")
                 if s == 0:
-                    s, img_zero = int(t), img_zero + (1 if t else 0)
-                img_st.append(s)
-                if first_img is None:
-                    first_img = self._decode(r, conn, raw, s)
+                    s, scan.img_zero = int(t), scan.img_zero + (1 if t else 0)
+                scan.img_st.append(s)
+                if scan.first_img is None:
+                    scan.first_img = self._decode(r, conn, raw, s)
             elif topic == self.imu_topic:
-                m = self._deser(r, raw, conn, f"{self.path}:{topic}")
-                s = _stamp_of(m, f"{self.path}:{topic}")
-                if s == 0:
-                    s, imu_zero = int(t), imu_zero + 1
+                m, s, zero = self._stamped(r, conn, t, raw)
+                scan.imu_zero += int(zero)
                 if m.angular_velocity_covariance[0] == -1:
-                    imu_missing["gyro"] += 1
+                    scan.imu_missing["gyro"] += 1
                 if m.linear_acceleration_covariance[0] == -1:
-                    imu_missing["accel"] += 1
+                    scan.imu_missing["accel"] += 1
                 w, a = m.angular_velocity, m.linear_acceleration
-                imu_st.append(s)
-                imu_v.append((w.x, w.y, w.z, a.x, a.y, a.z))
+                scan.imu_st.append(s)
+                scan.imu_v.append((w.x, w.y, w.z, a.x, a.y, a.z))
             elif topic == self.camera_info_topic:
-                if cam_msg is None:
+                if scan.cam_msg is None:
                     m = self._deser(r, raw, conn, f"{self.path}:{topic}")
                     if camera_from_camera_info(m, f"{self.path}:{topic}",
                                                is_rectified_topic(self.image_topic)) is not None:
-                        cam_msg = m
+                        scan.cam_msg = m
             elif topic == self.gt_topic:
-                m = self._deser(r, raw, conn, f"{self.path}:{topic}")
-                s = _stamp_of(m, f"{self.path}:{topic}")
-                if s == 0:
-                    s, gt_zero = int(t), gt_zero + 1
-                gt_st.append(s)
-                gt_T.append(pose_of(m, conn.msgtype))
+                m, s, zero = self._stamped(r, conn, t, raw)
+                scan.gt_zero += int(zero)
+                scan.gt_st.append(s)
+                scan.gt_T.append(pose_of(m, conn.msgtype))
+        return scan
 
-        if img_zero:
-            self._warn(f"{self.path}:{self.image_topic}: {img_zero} image(s) with a zero header stamp; "
-                       f"used the bag receive time")
-        if imu_zero:
-            self._warn(f"{self.path}:{self.imu_topic}: {imu_zero} IMU sample(s) with a zero header "
-                       f"stamp; used the bag receive time")
-        if gt_zero:
-            self._warn(f"{self.path}:{self.gt_topic}: {gt_zero} ground-truth pose(s) with a zero "
-                       f"header stamp; used the bag receive time")
-        # frames: sorted, de-duplicated, limited
+    def _stamped(self, r, conn, t: int, raw: bytes) -> tuple[object, int, bool]:
+        """The message, its header stamp (ns) and whether that stamp was zero and replaced by the
+        bag receive time ``t`` (ns)."""
+        m = self._deser(r, raw, conn, f"{self.path}:{conn.topic}")
+        s = _stamp_of(m, f"{self.path}:{conn.topic}")
+        return (m, int(t), True) if s == 0 else (m, s, False)
+
+    def _set_frame_stamps(self, img_st: list[int]) -> None:
+        """Frame stamps (ns): sorted, de-duplicated, images too far out of order dropped, limited."""
         st = np.asarray(img_st, dtype=np.int64)
         idx = order_stamps(st, f"{self.path}:{self.image_topic}", self._warn)
         # frames() inserts an arriving image before delivering, so REORDER_WINDOW - 1 may wait
@@ -353,34 +379,69 @@ class BagSource(LoaderSource):
         self._stamps = st[idx]
         self._pos = {int(s): i for i, s in enumerate(self._stamps)}
 
-        # IMU
-        if self.imu_topic:
-            v = np.asarray(imu_v, dtype=np.float64).reshape(-1, 6)
-            bad = [k for k, n in imu_missing.items() if n]
-            if bad:
-                self._warn(f"{self.path}:{self.imu_topic}: messages mark {' and '.join(bad)} as "
-                           f"unavailable (covariance[0] = -1); IMU not used")
-                v = v[:0]
-                imu_st = []
-            elif not np.all(np.isfinite(v)):
-                keep = np.all(np.isfinite(v), axis=1)
-                self._warn(f"{self.path}:{self.imu_topic}: {int((~keep).sum())} IMU sample(s) with "
-                           f"non-finite values dropped")
-                v = v[keep]
-                imu_st = list(np.asarray(imu_st)[keep])
-            self._set_imu(np.asarray(imu_st, dtype=np.int64), v[:, :3], v[:, 3:], f"{self.path}:{self.imu_topic}")
+    def _set_bag_imu(self, imu_st: list[int], imu_v: list[tuple], missing: dict[str, int]) -> None:
+        """IMU samples (stamps ns; gyro rad/s, accel m/s^2 in ``imu_v`` rows): none when the
+        messages mark gyro or accel unavailable, samples with non-finite values dropped."""
+        v = np.asarray(imu_v, dtype=np.float64).reshape(-1, 6)
+        bad = [k for k, n in missing.items() if n]
+        if bad:
+            self._warn(f"{self.path}:{self.imu_topic}: messages mark {' and '.join(bad)} as "
+                       f"unavailable (covariance[0] = -1); IMU not used")
+            v = v[:0]
+            imu_st = []
+        elif not np.all(np.isfinite(v)):
+            keep = np.all(np.isfinite(v), axis=1)
+            self._warn(f"{self.path}:{self.imu_topic}: {int((~keep).sum())} IMU sample(s) with "
+                       f"non-finite values dropped")
+            v = v[keep]
+            imu_st = list(np.asarray(imu_st)[keep])
+        self._set_imu(np.asarray(imu_st, dtype=np.int64), v[:, :3], v[:, 3:],
+                      f"{self.path}:{self.imu_topic}")
 
-        # ground truth (body)
-        if self.gt_topic and gt_st:
-            T = np.stack(gt_T)
-            ok = np.all(np.isfinite(T.reshape(len(T), -1)), axis=1)
-            if not ok.all():
-                self._warn(f"{self.path}:{self.gt_topic}: {int((~ok).sum())} pose(s) with a zero "
-                           f"quaternion or non-finite values dropped")
-            self._set_gt(np.asarray(gt_st, dtype=np.int64)[ok], T[ok], f"{self.path}:{self.gt_topic}",
-                         "body")
+    def _set_bag_gt(self, gt_st: list[int], gt_T: list[np.ndarray]) -> None:
+        """Body ground truth (stamps ns, ``T_wb``), poses with a zero quaternion or non-finite
+        values dropped."""
+        T = np.stack(gt_T)
+        ok = np.all(np.isfinite(T.reshape(len(T), -1)), axis=1)
+        if not ok.all():
+            self._warn(f"{self.path}:{self.gt_topic}: {int((~ok).sum())} pose(s) with a zero "
+                       f"quaternion or non-finite values dropped")
+        self._set_gt(np.asarray(gt_st, dtype=np.int64)[ok], T[ok], f"{self.path}:{self.gt_topic}",
+                     "body")
 
-        # calibration
+    def _set_calibration(self, cam_msg, first_img: Optional[np.ndarray]) -> None:
+        """Camera and rig calibration (module doc: YAML, else CameraInfo), checked against the first
+        image's size; missing extrinsic or IMU noise warned. Needs the IMU set."""
+        parts, camera = self._calibration_parts(cam_msg, first_img)
+        has_imu = len(self._imu_st) > 0
+        parts.has_imu = has_imu
+        parts.imu_rate_hz = self._imu_rate() or parts.imu_rate_hz
+        if first_img is not None:
+            h, w = first_img.shape[:2]
+            if camera is None:
+                stem = self.path.name if self.path.is_dir() else self.path.stem
+                note = f" ({self._camera_info_note})" if self._camera_info_note else ""
+                raise InputError(
+                    f"{self.path}: no calibration for image topic {self.image_topic}: no usable "
+                    f"CameraInfo topic{note} and no calibration YAML (looked for "
+                    f"{self.path.parent / (stem + '.calib.yaml')}); pass --calib FILE or "
+                    f"--camera-info-topic")
+            camera = check_size(camera, w, h, f"{self.path}:{self.image_topic}", self._warn)
+        if has_imu and not parts.noise:
+            self._warn(f"{self.path}: IMU noise parameters unknown; using the defaults (EuRoC "
+                       f"ADIS16448)")
+        if camera is not None:
+            if has_imu and parts.T_bc is None:
+                self._warn(f"{self.path}: camera-to-IMU extrinsic T_bc unknown; assuming identity "
+                           f"(give it in a calibration YAML with --calib)")
+            self._set_camera(camera, parts.to_calibration(camera))
+        else:  # no camera in this recording: IMU (and GT) only
+            self.calibration = parts.to_calibration(None)
+
+    def _calibration_parts(self, cam_msg, first_img: Optional[np.ndarray]
+                           ) -> tuple[CalibParts, Optional[CameraModel]]:
+        """The calibration YAML's parts and the raw camera: the YAML's, else the CameraInfo's (None
+        when neither gives one); sets ``calib_source``."""
         parts = CalibParts()
         yaml_path = self.options.calib_file or calib_yaml_beside(self.path)
         self.calib_source = None
@@ -396,31 +457,7 @@ class BagSource(LoaderSource):
                 camera = None
             if camera is not None and rectified:
                 self._rectified_extrinsic(parts, cam_msg)
-        has_imu = len(self._imu_st) > 0
-        parts.has_imu = has_imu
-        parts.imu_rate_hz = self._imu_rate() or parts.imu_rate_hz
-        if first_img is not None:
-            h, w = first_img.shape[:2]
-            if camera is None:
-                raise InputError(
-                    f"{self.path}: no calibration for image topic {self.image_topic}: no usable "
-                    f"CameraInfo topic{' (' + self._camera_info_note + ')' if self._camera_info_note else ''} "
-                    f"and no calibration YAML (looked for "
-                    f"{self.path.parent / ((self.path.name if self.path.is_dir() else self.path.stem) + '.calib.yaml')}); "
-                    f"pass --calib FILE or --camera-info-topic")
-            camera = check_size(camera, w, h, f"{self.path}:{self.image_topic}", self._warn)
-        if has_imu and not parts.noise:
-            self._warn(f"{self.path}: IMU noise parameters unknown; using the defaults (EuRoC "
-                       f"ADIS16448)")
-        if camera is not None:
-            if has_imu and parts.T_bc is None:
-                self._warn(f"{self.path}: camera-to-IMU extrinsic T_bc unknown; assuming identity "
-                           f"(give it in a calibration YAML with --calib)")
-            self._set_camera(camera, parts.to_calibration(camera))
-        else:  # no camera in this recording: IMU (and GT) only
-            self.calibration = parts.to_calibration(None)
-        if first_img is not None:
-            self._first_img_dtype = str(first_img.dtype)
+        return parts, camera
 
     def _rectified_extrinsic(self, parts: CalibParts, cam_msg) -> None:
         """Rectified images (``image_rect``) live in the rectified frame, turned by CameraInfo's R

@@ -23,7 +23,7 @@ from ..errors import InputError
 from ..types import Calibration, CameraModel
 from .base import SourceOptions
 from .calib_yaml import read_calibration_parts
-from .common import FileFramesSource, check_size
+from .common import FileFramesSource, check_size, read_table
 from .image_codec import read_image_file
 
 IMAGE_DIRS = (("image_0", 0), ("image_l", 0), ("image_2", 2))
@@ -34,6 +34,15 @@ def kitti_image_dir(path: Path) -> Optional[tuple[Path, int]]:
         if (path / name).is_dir():
             return path / name, cam
     return None
+
+
+def _numbers(text: str, path: Path, ln: int) -> np.ndarray:
+    """The whitespace-separated numbers of ``text`` (line ``ln`` of ``path``); an
+    :class:`InputError` naming that line when one is not a number."""
+    try:
+        return np.array([float(x) for x in text.split()])
+    except ValueError:
+        raise InputError(f"{path}:{ln}: not a list of numbers") from None
 
 
 def read_kitti_calib(path: Path) -> dict[int, np.ndarray]:
@@ -50,10 +59,7 @@ def read_kitti_calib(path: Path) -> dict[int, np.ndarray]:
         if ":" in line:
             label, line = line.split(":", 1)
             label = label.strip()
-        try:
-            v = np.array([float(x) for x in line.split()])
-        except ValueError:
-            raise InputError(f"{path}:{ln}: not a list of numbers") from None
+        v = _numbers(line, path, ln)
         if label is None:
             key = unlabelled
             unlabelled += 1
@@ -75,10 +81,7 @@ def read_kitti_poses(path: Path) -> np.ndarray:
     for ln, line in enumerate(path.read_text().splitlines(), 1):
         if not line.strip():
             continue
-        try:
-            v = np.array([float(x) for x in line.split()])
-        except ValueError:
-            raise InputError(f"{path}:{ln}: not a list of numbers") from None
+        v = _numbers(line, path, ln)
         if v.size == 13:  # some copies put the time in front
             v = v[1:]
         if v.size != 12:
@@ -105,6 +108,24 @@ def find_kitti_poses(path: Path) -> Optional[Path]:
     return None
 
 
+def _numbered_images(img_dir: Path) -> tuple[list[Path], np.ndarray]:
+    """The ``.png``/``.jpg`` images of ``img_dir`` and their frame numbers (int64).
+
+    KITTI names frames by their number (000123.png): times.txt and the poses file have one line per
+    frame number, so a subset of the images (or a gap) is paired by number, not position. Images
+    are ordered by number (2.png before 10.png when the names are not zero-padded); when any name
+    is not a number, by name, numbered by position."""
+    files = sorted(p for p in img_dir.iterdir() if p.suffix.lower() in (".png", ".jpg"))
+    if not files:
+        raise InputError(f"{img_dir}: no images")
+    numbers = [int(p.stem) if p.stem.isdigit() else None for p in files]
+    by_number = all(n is not None for n in numbers)
+    if by_number:
+        files, numbers = zip(*sorted(zip(files, numbers), key=lambda fn: fn[1]))
+        files, numbers = list(files), list(numbers)
+    return files, np.array(numbers if by_number else range(len(files)), dtype=np.int64)
+
+
 class KittiSource(FileFramesSource):
     """KITTI odometry sequence loader (see the module doc)."""
 
@@ -117,40 +138,42 @@ class KittiSource(FileFramesSource):
             raise InputError(f"{self.path}: no image_0/, image_l/ or image_2/ folder")
         img_dir, cam = found
         self.camera_index = cam
-        files = sorted(p for p in img_dir.iterdir() if p.suffix.lower() in (".png", ".jpg"))
-        if not files:
-            raise InputError(f"{img_dir}: no images")
-
-        # KITTI names frames by their number (000123.png): times.txt and the poses file have one line
-        # per frame number, so a subset of the images (or a gap) is paired by number, not position
-        numbers = [int(p.stem) if p.stem.isdigit() else None for p in files]
-        by_number = all(n is not None for n in numbers)
-        if by_number:       # 2.png before 10.png when the names are not zero-padded
-            files, numbers = zip(*sorted(zip(files, numbers), key=lambda fn: fn[1]))
-            files, numbers = list(files), list(numbers)
-        idx = np.array(numbers if by_number else range(len(files)), dtype=np.int64)
+        files, idx = _numbered_images(img_dir)
         times = self.path / "times.txt"
-        if times.is_file():
-            from .common import read_table
-            st, _, _ = read_table(times, 1, "frame times (times.txt)", stamp_in_seconds=True)
-            if len(st) == 0:
-                raise InputError(f"{times}: no time stamps")
-            line = self._line_index(idx, len(st), times, "times")
-            keep = line < len(st)
-            if not keep.any():
-                raise InputError(f"{times}: {len(st)} times, none for the images numbered "
-                                 f"{int(idx.min())}..{int(idx.max())}")
-            if not keep.all():
-                self._warn(f"{times}: {len(st)} times; the {int((~keep).sum())} image(s) numbered "
-                           f"{int(idx[~keep][0])} and above have none and are left out")
-                files = [f for f, k in zip(files, keep) if k]
-                idx, line = idx[keep], line[keep]
-            st = st[line]
-        else:
-            self._warn(f"{times} not found: assuming 10 Hz frames from t = 0")
-            st = idx * 100_000_000
+        st, files, idx = self._frame_times(times, files, idx)
         self._set_frames(st, files, str(times))
+        P_cam = self._set_kitti_camera(img_dir, cam, files)
+        pose_file = find_kitti_poses(self.path)
+        if pose_file is not None:
+            if cam != 0 and P_cam is None:
+                P_cam = self._lever_arm_camera(cam)
+            self._set_kitti_gt(pose_file, idx, st, cam, P_cam)
 
+    def _frame_times(self, times: Path, files: list[Path], idx: np.ndarray
+                     ) -> tuple[np.ndarray, list[Path], np.ndarray]:
+        """Stamps (ns) of the images numbered ``idx`` from ``times`` (s; 10 Hz from 0 when it is
+        missing, warned), with the images and numbers that have one."""
+        if not times.is_file():
+            self._warn(f"{times} not found: assuming 10 Hz frames from t = 0")
+            return idx * 100_000_000, files, idx
+        st, _, _ = read_table(times, 1, "frame times (times.txt)", stamp_in_seconds=True)
+        if len(st) == 0:
+            raise InputError(f"{times}: no time stamps")
+        line = self._line_index(idx, len(st), times, "times")
+        keep = line < len(st)
+        if not keep.any():
+            raise InputError(f"{times}: {len(st)} times, none for the images numbered "
+                             f"{int(idx.min())}..{int(idx.max())}")
+        if not keep.all():
+            self._warn(f"{times}: {len(st)} times; the {int((~keep).sum())} image(s) numbered "
+                       f"{int(idx[~keep][0])} and above have none and are left out")
+            files = [f for f, k in zip(files, keep) if k]
+            idx, line = idx[keep], line[keep]
+        return st[line], files, idx
+
+    def _set_kitti_camera(self, img_dir: Path, cam: int, files: list[Path]) -> Optional[np.ndarray]:
+        """Install the camera of ``img_dir`` (camera ``cam``): from ``--calib``, else ``P<cam>`` of
+        calib.txt, sized by the first image. Returns that 3x4 P (None with ``--calib``)."""
         first = read_image_file(self._files[0] if self._files else files[0])
         h, w = first.shape[:2]
         if self.options.calib_file:
@@ -159,7 +182,7 @@ class KittiSource(FileFramesSource):
                 raise InputError(f"{self.options.calib_file}: no camera calibration in this file")
             raw = check_size(parts.camera, w, h, str(files[0]), self._warn)
             calib = parts.to_calibration(raw)
-            P_cam = None     # the lever arm to camera 0 (ground truth): from calib.txt, below
+            P_cam = None     # the lever arm to camera 0 (ground truth): from calib.txt, if needed
         else:
             Ps = read_kitti_calib(self.path / "calib.txt")
             if cam not in Ps:
@@ -169,26 +192,27 @@ class KittiSource(FileFramesSource):
             calib = Calibration(camera=raw)
         calib.has_imu = False
         self._set_camera(raw, calib)
+        return P_cam
 
-        pose_file = find_kitti_poses(self.path)
-        if pose_file is not None and cam != 0 and P_cam is None:
-            P_cam = self._lever_arm_camera(cam)
-        if pose_file is not None:
-            poses = read_kitti_poses(pose_file)
-            pidx = self._line_index(idx, len(poses), pose_file, "poses")
-            has = pidx < len(poses)
-            if not has.all():
-                self._warn(f"{pose_file}: {len(poses)} poses; no ground truth for the "
-                           f"{int((~has).sum())} frame(s) numbered {int(pidx[~has][0])} and above")
-            all_st = np.asarray(st)[has]
-            poses = poses[pidx[has]]
-            if P_cam is not None and cam != 0:
-                # x_cam = x_cam0 + t with t = K^-1 P[:, 3]: T_cam0_cam = [I | -t]
-                t = np.linalg.solve(P_cam[:, :3], P_cam[:, 3])
-                T0c = np.eye(4)
-                T0c[:3, 3] = -t
-                poses = poses @ T0c
-            self._set_gt(all_st, poses, str(pose_file), "camera")
+    def _set_kitti_gt(self, pose_file: Path, idx: np.ndarray, st: np.ndarray, cam: int,
+                      P_cam: Optional[np.ndarray]) -> None:
+        """Ground truth ``T_w_cam`` of the images numbered ``idx`` (stamps ``st``, ns) from
+        ``pose_file`` (camera 0), moved to camera ``cam`` by the baseline of ``P_cam`` if given."""
+        poses = read_kitti_poses(pose_file)
+        pidx = self._line_index(idx, len(poses), pose_file, "poses")
+        has = pidx < len(poses)
+        if not has.all():
+            self._warn(f"{pose_file}: {len(poses)} poses; no ground truth for the "
+                       f"{int((~has).sum())} frame(s) numbered {int(pidx[~has][0])} and above")
+        all_st = np.asarray(st)[has]
+        poses = poses[pidx[has]]
+        if P_cam is not None and cam != 0:
+            # x_cam = x_cam0 + t with t = K^-1 P[:, 3]: T_cam0_cam = [I | -t]
+            t = np.linalg.solve(P_cam[:, :3], P_cam[:, 3])
+            T0c = np.eye(4)
+            T0c[:3, 3] = -t
+            poses = poses @ T0c
+        self._set_gt(all_st, poses, str(pose_file), "camera")
 
     def _line_index(self, idx: np.ndarray, n_lines: int, path: Path, what: str) -> np.ndarray:
         """Line of ``path`` (times / poses: one line per frame number) for each image number

@@ -30,11 +30,12 @@ import numpy as np
 
 from ..errors import ConfigError, VingsError
 from ..geometry import np_rotmat_to_quat
+from ..types import CameraModel
 from ..util import atomic_write_json
 from . import render_view
-from .imu import ImuNoise, simulate_imu
+from .imu import ImuData, ImuNoise, simulate_imu
 from .scene import SCENES, STREET_LENGTH_DEFAULT, STREET_MAX_LENGTH_M, Scene, default_camera, make_scene
-from .trajectory import TimeScaledMotion
+from .trajectory import MotionSample, TimeScaledMotion
 
 log = logging.getLogger("vings.sim")
 
@@ -184,25 +185,9 @@ def generate(scene_name: str, out_dir, frames: Optional[int] = None, width: int 
     _check_out_dir(out)
     scene = build_scene(scene_name, seed=seed, dynamic=dynamic, loop=loop, length_m=length_m, fps=fps)
 
-    period_ns = int(round(1e9 / fps))
-    imu_step_ns = int(round(1e9 / IMU_RATE_HZ))
     notes: list[str] = []
-    D = scene.motion.duration
-    if frames_req is None:
-        n_frames = int(np.floor(D * fps + 1e-6)) + 1
-    else:
-        n_frames = frames_req
-        if D is not None and (n_frames - 1) / fps > D + 1e-9:
-            max_frames = int(np.floor(D * fps + 1e-6)) + 1
-            raise ConfigError(f"{n_frames} frames at {fps:g} Hz last {(n_frames - 1) / fps:.1f} s but "
-                              f"the {scene.info.get('route_length_m', 0):.0f} m route lasts {D:.1f} s "
-                              f"(at most {max_frames} frames); raise --length-m or lower --frames")
-        if loop and (n_frames - 1) / fps < D - 1e-9:
-            notes.append(f"only {n_frames} of {int(np.floor(D * fps + 1e-6)) + 1} frames: the loop "
-                         "is not closed")
-    frame_ns = np.arange(n_frames, dtype=np.int64) * period_ns
-    n_imu = int(frame_ns[-1] // imu_step_ns) + 1
-    imu_ns = np.arange(n_imu, dtype=np.int64) * imu_step_ns
+    n_frames = _frame_count(scene, frames_req, fps, loop, notes)
+    frame_ns, imu_ns = _sample_stamps(n_frames, fps)
     t_frames = frame_ns * 1e-9
     t_imu = imu_ns * 1e-9
 
@@ -212,45 +197,13 @@ def generate(scene_name: str, out_dir, frames: Optional[int] = None, width: int 
     gt = scene.motion.sample(t_imu)
     T_wc = scene.T_wc(t_frames)
 
-    tmp = out.parent / f".{out.name}.tmp-{os.getpid()}"
+    tmp = _fresh_tmp_dir(out)
     try:
-        if tmp.exists():
-            shutil.rmtree(tmp)
-        out.parent.mkdir(parents=True, exist_ok=True)
-        tmp.mkdir()
-    except OSError as e:
-        raise ConfigError(f"{out}: cannot write the simulator output there ({e.strerror or e})") from None
-    try:
-        mav0 = tmp / "mav0"
-        dirs = {k: mav0 / k for k in ("cam0", "imu0", "state_groundtruth_estimate0", "depth0", "mask0")}
-        for k in ("cam0", "depth0", "mask0"):
-            (dirs[k] / "data").mkdir(parents=True)
-        for k in ("imu0", "state_groundtruth_estimate0"):
-            dirs[k].mkdir(parents=True)
+        dirs = _make_mav0(tmp / "mav0")
         stamps = T0_NS + frame_ns
-        names = [f"{s}.png" for s in stamps]
         stats = _render_all(scene, camera, T_wc, t_frames, stamps, dirs, progress)
-        _write_csv(dirs["cam0"] / "data.csv", "#timestamp [ns],filename", stamps, names=names)
-        _write_csv(dirs["depth0"] / "data.csv", "#timestamp [ns],filename", stamps,
-                   names=[f"{s}.npy" for s in stamps])
-        _write_csv(dirs["mask0"] / "data.csv", "#timestamp [ns],filename", stamps, names=names)
-        (dirs["cam0"] / "sensor.yaml").write_text(_sensor_yaml_cam(camera, scene.T_bc, fps))
-        istamps = T0_NS + imu_ns
-        _write_csv(dirs["imu0"] / "data.csv",
-                   "#timestamp [ns],w_RS_S_x [rad s^-1],w_RS_S_y [rad s^-1],w_RS_S_z [rad s^-1],"
-                   "a_RS_S_x [m s^-2],a_RS_S_y [m s^-2],a_RS_S_z [m s^-2]",
-                   istamps, np.hstack([imu.gyro, imu.accel]))
-        (dirs["imu0"] / "sensor.yaml").write_text(_sensor_yaml_imu(noise_cfg))
-        q_xyzw = np_rotmat_to_quat(gt.R)
-        q_wxyz = np.hstack([q_xyzw[:, 3:], q_xyzw[:, :3]])
-        q_wxyz *= np.where(q_wxyz[:, :1] < 0, -1.0, 1.0)
-        _write_csv(dirs["state_groundtruth_estimate0"] / "data.csv",
-                   "#timestamp, p_RS_R_x [m], p_RS_R_y [m], p_RS_R_z [m], q_RS_w [], q_RS_x [], "
-                   "q_RS_y [], q_RS_z [], v_RS_R_x [m s^-1], v_RS_R_y [m s^-1], v_RS_R_z [m s^-1], "
-                   "b_w_RS_S_x [rad s^-1], b_w_RS_S_y [rad s^-1], b_w_RS_S_z [rad s^-1], "
-                   "b_a_RS_S_x [m s^-2], b_a_RS_S_y [m s^-2], b_a_RS_S_z [m s^-2]",
-                   istamps, np.hstack([gt.p, q_wxyz, gt.v, imu.bias_gyro, imu.bias_accel]))
-        (dirs["state_groundtruth_estimate0"] / "sensor.yaml").write_text(_sensor_yaml_gt())
+        _write_camera_files(dirs, stamps, camera, scene.T_bc, fps)
+        _write_imu_files(dirs, T0_NS + imu_ns, imu, gt, noise_cfg)
 
         summary = summarize(scene, camera, gt, t_frames, fps, seed, noise, stats, notes)
         mcap_path = None
@@ -270,6 +223,94 @@ def generate(scene_name: str, out_dir, frames: Optional[int] = None, width: int 
     log.info("sim: wrote %d frames of %s to %s in %.1f s", n_frames, scene_name, out,
              time.time() - wall0)
     return out
+
+
+def _frame_count(scene: Scene, frames_req: Optional[int], fps: float, loop: bool, notes: list[str]) -> int:
+    """Camera frames to render: ``frames_req``, or (None) every frame of the motion's duration at
+    ``fps`` Hz. More than the route lasts is an error; a loop cut short adds a note to ``notes``."""
+    D = scene.motion.duration
+    if frames_req is None:
+        return int(np.floor(D * fps + 1e-6)) + 1
+    n_frames = frames_req
+    if D is not None and (n_frames - 1) / fps > D + 1e-9:
+        max_frames = int(np.floor(D * fps + 1e-6)) + 1
+        raise ConfigError(f"{n_frames} frames at {fps:g} Hz last {(n_frames - 1) / fps:.1f} s but "
+                          f"the {scene.info.get('route_length_m', 0):.0f} m route lasts {D:.1f} s "
+                          f"(at most {max_frames} frames); raise --length-m or lower --frames")
+    if loop and (n_frames - 1) / fps < D - 1e-9:
+        notes.append(f"only {n_frames} of {int(np.floor(D * fps + 1e-6)) + 1} frames: the loop "
+                     "is not closed")
+    return n_frames
+
+
+def _sample_stamps(n_frames: int, fps: float) -> tuple[np.ndarray, np.ndarray]:
+    """Stamps (ns from the first frame, int64) of ``n_frames`` frames at ``fps`` Hz and of the IMU
+    samples (at :data:`IMU_RATE_HZ`) up to the last frame."""
+    period_ns = int(round(1e9 / fps))
+    imu_step_ns = int(round(1e9 / IMU_RATE_HZ))
+    frame_ns = np.arange(n_frames, dtype=np.int64) * period_ns
+    n_imu = int(frame_ns[-1] // imu_step_ns) + 1
+    return frame_ns, np.arange(n_imu, dtype=np.int64) * imu_step_ns
+
+
+def _fresh_tmp_dir(out: Path) -> Path:
+    """An empty temporary sibling folder of ``out`` (``.<name>.tmp-<pid>``) to build the output in."""
+    tmp = out.parent / f".{out.name}.tmp-{os.getpid()}"
+    try:
+        if tmp.exists():
+            shutil.rmtree(tmp)
+        out.parent.mkdir(parents=True, exist_ok=True)
+        tmp.mkdir()
+    except OSError as e:
+        raise ConfigError(f"{out}: cannot write the simulator output there ({e.strerror or e})") from None
+    return tmp
+
+
+def _make_mav0(mav0: Path) -> dict[str, Path]:
+    """The sensor folders of ``mav0`` (``cam0``, ``depth0``, ``mask0`` with their ``data/``;
+    ``imu0``, ``state_groundtruth_estimate0``), created, by name."""
+    dirs = {k: mav0 / k for k in ("cam0", "imu0", "state_groundtruth_estimate0", "depth0", "mask0")}
+    for k in ("cam0", "depth0", "mask0"):
+        (dirs[k] / "data").mkdir(parents=True)
+    for k in ("imu0", "state_groundtruth_estimate0"):
+        dirs[k].mkdir(parents=True)
+    return dirs
+
+
+_FILE_LIST_HEADER = "#timestamp [ns],filename"
+
+
+def _write_camera_files(dirs: dict[str, Path], stamps: np.ndarray, camera: CameraModel,
+                        T_bc: np.ndarray, fps: float) -> None:
+    """The file lists of ``cam0``, ``depth0`` and ``mask0`` (frame ``stamps``, ns) and
+    ``cam0/sensor.yaml`` (intrinsics in px, ``T_BS = T_bc``, ``fps`` Hz)."""
+    names = [f"{s}.png" for s in stamps]
+    _write_csv(dirs["cam0"] / "data.csv", _FILE_LIST_HEADER, stamps, names=names)
+    _write_csv(dirs["depth0"] / "data.csv", _FILE_LIST_HEADER, stamps, names=[f"{s}.npy" for s in stamps])
+    _write_csv(dirs["mask0"] / "data.csv", _FILE_LIST_HEADER, stamps, names=names)
+    (dirs["cam0"] / "sensor.yaml").write_text(_sensor_yaml_cam(camera, T_bc, fps))
+
+
+def _write_imu_files(dirs: dict[str, Path], istamps: np.ndarray, imu: ImuData, gt: MotionSample,
+                     noise_cfg: ImuNoise) -> None:
+    """``imu0`` (samples: gyro rad/s, accel m/s^2, body frame; noise of ``noise_cfg``) and
+    ``state_groundtruth_estimate0`` (body position m and quaternion wxyz with w >= 0 in the world,
+    velocity m/s, IMU biases), both at the IMU stamps ``istamps`` (ns)."""
+    _write_csv(dirs["imu0"] / "data.csv",
+               "#timestamp [ns],w_RS_S_x [rad s^-1],w_RS_S_y [rad s^-1],w_RS_S_z [rad s^-1],"
+               "a_RS_S_x [m s^-2],a_RS_S_y [m s^-2],a_RS_S_z [m s^-2]",
+               istamps, np.hstack([imu.gyro, imu.accel]))
+    (dirs["imu0"] / "sensor.yaml").write_text(_sensor_yaml_imu(noise_cfg))
+    q_xyzw = np_rotmat_to_quat(gt.R)
+    q_wxyz = np.hstack([q_xyzw[:, 3:], q_xyzw[:, :3]])
+    q_wxyz *= np.where(q_wxyz[:, :1] < 0, -1.0, 1.0)
+    _write_csv(dirs["state_groundtruth_estimate0"] / "data.csv",
+               "#timestamp, p_RS_R_x [m], p_RS_R_y [m], p_RS_R_z [m], q_RS_w [], q_RS_x [], "
+               "q_RS_y [], q_RS_z [], v_RS_R_x [m s^-1], v_RS_R_y [m s^-1], v_RS_R_z [m s^-1], "
+               "b_w_RS_S_x [rad s^-1], b_w_RS_S_y [rad s^-1], b_w_RS_S_z [rad s^-1], "
+               "b_a_RS_S_x [m s^-2], b_a_RS_S_y [m s^-2], b_a_RS_S_z [m s^-2]",
+               istamps, np.hstack([gt.p, q_wxyz, gt.v, imu.bias_gyro, imu.bias_accel]))
+    (dirs["state_groundtruth_estimate0"] / "sensor.yaml").write_text(_sensor_yaml_gt())
 
 
 def _render_all(scene: Scene, camera, T_wc: np.ndarray, t_frames: np.ndarray, stamps: np.ndarray,

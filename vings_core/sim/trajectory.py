@@ -14,7 +14,7 @@ all analytic (C2 or smoother), so that the IMU built from them is exactly consis
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Optional
+from typing import NamedTuple, Optional
 
 import numpy as np
 
@@ -303,7 +303,37 @@ def plan_drive(corners: np.ndarray, closed: bool, rng: np.random.Generator, *,
 
     Closed routes start (and end) at ``start_fraction`` of the first leg, at cruise speed, and
     return to exactly the same state. Open routes are cut at ``total_length`` (m) if given.
+    ``rng`` draws each leg's cruise speed (m/s, in ``v_cruise``), then the suspension bounce.
     """
+    legs = _route_legs(corners, closed, turn_length, ramp_length)
+    v_c = [float(rng.uniform(*v_cruise)) for _ in legs]
+    if closed:
+        legs, v_c = _start_inside_first_leg(legs, v_c, start_fraction, ramp_length)
+    pieces, phases = _pieces_and_phases(legs, v_c, closed, turn_length, v_turn, ramp_length)
+    duration = phases[-1].t0 + phases[-1].tau
+    motion = DriveMotion(pieces, phases, height, _bounce(rng, duration if closed else None))
+    if total_length is not None and total_length < motion.total_length:
+        # cut an open route: keep phases up to the time the length is reached
+        tt = _time_at_length(motion, total_length)
+        motion.duration = tt
+        motion.total_length = float(total_length)
+    return motion
+
+
+class _Leg(NamedTuple):
+    """The straight part of a route segment: start ``p0`` (2,) m, ``heading`` (rad), ``length`` (m)
+    and the angle (rad) of the turn that follows it (None when none does)."""
+
+    p0: np.ndarray
+    heading: float
+    length: float
+    turn_after: Optional[float]
+
+
+def _route_segments(corners: np.ndarray, closed: bool
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Route points (a closed route repeats its first corner at the end), segment vectors (m),
+    lengths (m) and headings (rad) of the segments between ``corners`` (K, 2)."""
     corners = np.asarray(corners, np.float64)
     if closed:
         pts = np.vstack([corners, corners[:1]])
@@ -314,18 +344,31 @@ def plan_drive(corners: np.ndarray, closed: bool, rng: np.random.Generator, *,
     if np.any(seg_len < 1e-9):
         raise ValueError("route has repeated corners")
     heads = np.arctan2(dirs[:, 1], dirs[:, 0])
-    nseg = len(dirs)
-    # turn angle at the end of each leg (towards the next)
+    return pts, dirs, seg_len, heads
+
+
+def _turn_angles(heads: np.ndarray, closed: bool) -> list[float]:
+    """Turn angle (+-pi/2 rad) at the end of each segment of headings ``heads``, towards the next
+    (every segment's when ``closed``, else all but the last)."""
+    nseg = len(heads)
     turns = []
     for i in range(nseg if closed else nseg - 1):
         d = (heads[(i + 1) % nseg] - heads[i] + np.pi) % (2 * np.pi) - np.pi
         if abs(abs(d) - np.pi / 2) > 1e-6:
             raise ValueError("route corners must be 90-degree turns")
         turns.append(float(np.sign(d) * np.pi / 2))
-    offs = {+1: _turn_offsets(turn_length, np.pi / 2), -1: _turn_offsets(turn_length, -np.pi / 2)}
+    return turns
 
-    # legs: straight part of each segment between the turns at its ends
-    legs = []   # (p_start, heading, length, turn_after or None)
+
+def _route_legs(corners: np.ndarray, closed: bool, turn_length: float, ramp_length: float) -> list[_Leg]:
+    """The straight legs of the route through ``corners``: each segment less the turns (of arc
+    length ``turn_length``, m) at its ends; too short for them (and, between two turns, for two
+    speed ramps of ``ramp_length`` m) is an error."""
+    pts, dirs, seg_len, heads = _route_segments(corners, closed)
+    nseg = len(dirs)
+    turns = _turn_angles(heads, closed)
+    offs = {+1: _turn_offsets(turn_length, np.pi / 2), -1: _turn_offsets(turn_length, -np.pi / 2)}
+    legs = []
     for i in range(nseg):
         e = dirs[i] / seg_len[i]
         before = turns[i - 1] if (closed or i > 0) else None
@@ -337,55 +380,74 @@ def plan_drive(corners: np.ndarray, closed: bool, rng: np.random.Generator, *,
             raise ValueError(f"route leg {i} too short ({seg_len[i]:.1f} m) for turns and ramps")
         if L < 0:
             raise ValueError(f"route leg {i} too short ({seg_len[i]:.1f} m)")
-        legs.append((pts[i] + a0 * e, heads[i], L, after))
+        legs.append(_Leg(pts[i] + a0 * e, heads[i], L, after))
+    return legs
 
-    v_c = [float(rng.uniform(*v_cruise)) for _ in legs]
-    if closed:
-        # start inside leg 0: split it so the route starts and ends at the same place and speed
-        p0, h0, L0, turn0 = legs[0]
-        cut = start_fraction * L0
-        cut = float(np.clip(cut, ramp_length, L0 - ramp_length)) if L0 >= 2 * ramp_length else 0.5 * L0
-        e0 = np.array([np.cos(h0), np.sin(h0)])
-        first = (p0 + cut * e0, h0, L0 - cut, turn0)
-        last = (p0, h0, cut, None)
-        legs = [first] + legs[1:] + [last]
-        v_c = v_c + [v_c[0]]
 
-    pieces: list[_Piece] = []
-    phases: list[_Phase] = []
-    s = 0.0
-    t = 0.0
-    v_now = v_c[0]
+def _start_inside_first_leg(legs: list[_Leg], v_c: list[float], start_fraction: float,
+                            ramp_length: float) -> tuple[list[_Leg], list[float]]:
+    """A closed route's legs and cruise speeds split at ``start_fraction`` of leg 0 (kept
+    ``ramp_length`` m from its ends), so the route starts and ends at the same place and speed."""
+    p0, h0, L0, turn0 = legs[0]
+    cut = start_fraction * L0
+    cut = float(np.clip(cut, ramp_length, L0 - ramp_length)) if L0 >= 2 * ramp_length else 0.5 * L0
+    e0 = np.array([np.cos(h0), np.sin(h0)])
+    first = _Leg(p0 + cut * e0, h0, L0 - cut, turn0)
+    last = _Leg(p0, h0, cut, None)
+    return [first] + legs[1:] + [last], v_c + [v_c[0]]
 
-    def add_phase(v0, v1, dist):
-        nonlocal t
+
+class _SpeedProfile:
+    """Phases of constant or quintically ramped speed, appended end to end from t = 0 s, s = 0 m."""
+
+    def __init__(self) -> None:
+        self.phases: list[_Phase] = []
+        self.t = 0.0
+        self.s = 0.0
+
+    def add(self, v0: float, v1: float, dist: float) -> None:
+        """A phase from speed ``v0`` to ``v1`` (m/s) over ``dist`` m."""
         tau = 2.0 * dist / (v0 + v1)
-        phases.append(_Phase(t0=t, s0=s_phase[0], v0=v0, v1=v1, tau=tau))
-        s_phase[0] += dist
-        t += tau
+        self.phases.append(_Phase(t0=self.t, s0=self.s, v0=v0, v1=v1, tau=tau))
+        self.s += dist
+        self.t += tau
 
-    s_phase = [0.0]
-    n_legs = len(legs)
+
+def _leg_ramps(length: float, v_now: float, vc: float, ramp_down: bool, ramp_length: float
+               ) -> tuple[float, float]:
+    """Lengths (m) of a leg's ramp from ``v_now`` to its cruise speed ``vc`` (none when they are
+    equal) and of its ramp down before a turn (``ramp_down``), shrunk together to fit ``length``."""
+    ramp_in = ramp_length if abs(v_now - vc) > 1e-9 else 0.0
+    ramp_out = ramp_length if ramp_down else 0.0
+    if ramp_in + ramp_out > length + 1e-9:
+        scale = length / (ramp_in + ramp_out)
+        ramp_in *= scale
+        ramp_out *= scale
+    return ramp_in, ramp_out
+
+
+def _pieces_and_phases(legs: list[_Leg], v_c: list[float], closed: bool, turn_length: float,
+                       v_turn: float, ramp_length: float) -> tuple[list[_Piece], list[_Phase]]:
+    """The route's pieces (each leg, then its turn) and speed phases: on each leg, from the
+    current speed ramp to its cruise speed ``v_c``, and down to ``v_turn`` (m/s) before a turn,
+    which is driven at constant speed."""
+    pieces: list[_Piece] = []
+    profile = _SpeedProfile()
+    s = 0.0
+    v_now = v_c[0]
     for li, (p_start, head, L, turn_after) in enumerate(legs):
         pieces.append(_Piece("straight", s, L, np.asarray(p_start, np.float64), float(head)))
-        # speed on this leg: from v_now, ramp to cruise, ramp down to v_turn before a turn
         vc = v_c[li]
         has_turn = turn_after is not None
-        ramp_in = ramp_length if abs(v_now - vc) > 1e-9 else 0.0
-        ramp_out = ramp_length if has_turn else 0.0
-        if closed and li == n_legs - 1:
-            ramp_out = 0.0
-        if ramp_in + ramp_out > L + 1e-9:
-            scale = L / (ramp_in + ramp_out)
-            ramp_in *= scale
-            ramp_out *= scale
+        ramp_down = has_turn and not (closed and li == len(legs) - 1)
+        ramp_in, ramp_out = _leg_ramps(L, v_now, vc, ramp_down, ramp_length)
         if ramp_in > 0:
-            add_phase(v_now, vc, ramp_in)
+            profile.add(v_now, vc, ramp_in)
         cruise = L - ramp_in - ramp_out
         if cruise > 1e-12:
-            add_phase(vc, vc, cruise)
+            profile.add(vc, vc, cruise)
         if ramp_out > 0:
-            add_phase(vc, v_turn, ramp_out)
+            profile.add(vc, v_turn, ramp_out)
             v_now = v_turn
         else:
             v_now = vc
@@ -393,16 +455,9 @@ def plan_drive(corners: np.ndarray, closed: bool, rng: np.random.Generator, *,
         if has_turn:
             p_end = np.asarray(p_start) + L * np.array([np.cos(head), np.sin(head)])
             pieces.append(_Piece("turn", s, turn_length, p_end, float(head), turn_after))
-            add_phase(v_now, v_now, turn_length)
+            profile.add(v_now, v_now, turn_length)
             s += turn_length
-    duration = phases[-1].t0 + phases[-1].tau
-    motion = DriveMotion(pieces, phases, height, _bounce(rng, duration if closed else None))
-    if total_length is not None and total_length < motion.total_length:
-        # cut an open route: keep phases up to the time the length is reached
-        tt = _time_at_length(motion, total_length)
-        motion.duration = tt
-        motion.total_length = float(total_length)
-    return motion
+    return pieces, profile.phases
 
 
 class TimeScaledMotion(Motion):
