@@ -8,6 +8,7 @@ Thread-safe: the mapper thread and the tracking thread add to the same table.
 """
 from __future__ import annotations
 
+import functools
 import threading
 import time
 from contextlib import contextmanager
@@ -87,3 +88,19 @@ def format_table(rows: list[dict]) -> str:
         out.append(f"| {r['stage']} | {r['step']} | {r['calls']} | {r['total_s']:.2f} | {r['mean_ms']:.1f} | "
                    f"{r['max_ms']:.1f} | {share} |")
     return "\n".join(out)
+
+
+def profiled(stage: str, step: str):
+    """Decorator: time every call of the function as ``(stage, step)`` (see :func:`timed`)."""
+    def wrap(fn):
+        @functools.wraps(fn)
+        def inner(*args, **kwargs):
+            if not PROFILE.enabled:
+                return fn(*args, **kwargs)
+            t0 = time.perf_counter()
+            try:
+                return fn(*args, **kwargs)
+            finally:
+                PROFILE.add(stage, step, time.perf_counter() - t0)
+        return inner
+    return wrap

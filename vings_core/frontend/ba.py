@@ -24,6 +24,7 @@ import torch
 
 from ..geometry import se3_exp
 from .projective import Intrinsics, adjoint, edge_residuals, linearize_edges, relative_poses
+from ..profiling import profiled
 
 DT = torch.float64
 
@@ -274,6 +275,7 @@ def apply_update(T_cw: torch.Tensor, d: torch.Tensor, idx: torch.Tensor, dxi: to
     return T, dn
 
 
+@profiled("tracking", "window BA")
 def bundle_adjust(T_cw: torch.Tensor, d: torch.Tensor, ii: torch.Tensor, jj: torch.Tensor,
                   rays: torch.Tensor, target: torch.Tensor, weight: torch.Tensor, K: Intrinsics,
                   n_fixed: int = 1, iters: int = 6, loss: str = "huber", delta: float = 2.0,
@@ -383,6 +385,7 @@ class PoseSystem:
         return G, g
 
 
+@profiled("tracking", "pose system")
 def reduced_pose_system(ne: NormalEquations, T_cw: torch.Tensor, stamps_ns: list,
                         eps_c: float = 1e-9) -> PoseSystem:
     """Schur complement of the linearisation ``ne`` over all window poses (no damping)."""
@@ -419,6 +422,7 @@ def depth_inflated_weight(weight: torch.Tensor, Jd: torch.Tensor,
     return torch.where(known & (weight > 0), w, torch.zeros_like(weight))
 
 
+@profiled("tracking", "motion-only BA")
 def motion_only(T_kf: torch.Tensor, d_kf: torch.Tensor, rays: torch.Tensor, target: torch.Tensor,
                 weight: torch.Tensor, K: Intrinsics, T_init: torch.Tensor, iters: int = 8,
                 loss: str = "huber", delta: float = 2.0,

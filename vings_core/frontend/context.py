@@ -20,6 +20,7 @@ from .config import FrontendConfig
 from .flow import (DISFlow, FlowEstimator, GridFlow, compose_flow, dense_from_grid, flow_around, grid_flow,
                    invert_flow, make_flow_estimator, texture_weight)
 from .projective import Intrinsics, grid_points, normalized_rays, project_edges
+from ..profiling import profiled
 
 DT = torch.float64
 STRIDE = 8
@@ -84,6 +85,7 @@ class FrontendContext:
         self.max_mean_flow_lr = 0.0
         self.motion_detected = False
 
+    @profiled("tracking", "flow")
     def flow_pair(self, g0: np.ndarray, g1: np.ndarray, init01: Optional[np.ndarray] = None,
                   init10: Optional[np.ndarray] = None, tex0: Optional[np.ndarray] = None,
                   tex1: Optional[np.ndarray] = None, both: bool = True) -> FlowPair:
@@ -104,6 +106,7 @@ class FrontendContext:
         """``(h, w)`` texture weight of the grid points of a grey image."""
         return texture_weight(gray, self.h, self.w, STRIDE, self.cfg.texture_tau)
 
+    @profiled("tracking", "flow chain")
     def chained_flow(self, chain: FlowChain, gray: np.ndarray) -> np.ndarray:
         """Prior dense flow ``chain.stamp`` -> current frame: the stored flow to the previous frame
         chained with a plain frame-to-frame flow (small motion, so reliable even for fast forward

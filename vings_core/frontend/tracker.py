@@ -38,6 +38,7 @@ from .initialise import Initialiser
 from .pose_buffer import PoseBuffer
 from .tracking import MotionTracker, Track, tangent_covariance
 from .window import KeyframeWindow, WindowKeyframe
+from ..profiling import profiled
 
 log = logging.getLogger("vings.frontend")
 #: every tracking state, in life-cycle order (the default filter of :meth:`Frontend.trajectory`)
@@ -169,6 +170,7 @@ class Frontend:
 
     # ------------------------------------------------------------------------------- public
 
+    @profiled("tracking", "frame (total)")
     def process(self, frame: Frame) -> list[PoseEstimate]:
         """Track one frame. Returns its :class:`PoseEstimate`, preceded (at initialisation) by
         revised estimates of the frames that waited for it."""

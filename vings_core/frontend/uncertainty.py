@@ -15,6 +15,7 @@ from __future__ import annotations
 import torch
 
 from .ba import NormalEquations, ReducedSystem, dense_matrix, jittered_cholesky, schur_reduce
+from ..profiling import profiled
 
 DT = torch.float64
 
@@ -32,6 +33,7 @@ def marginal_inv_depth_var(rs: ReducedSystem, jitter: float = 1e-9) -> torch.Ten
     return rs.Cinv + (G * G).sum(0)
 
 
+@profiled("tracking", "depth uncertainty")
 def window_inv_depth_var(ne: NormalEquations, free: torch.Tensor, eps_c: float = 1e-9) -> torch.Tensor:
     """``(M, P)`` marginal inverse-depth variances of a BA window whose free poses are ``free``;
     ``inf`` for depths no residual observes (``C = 0``: the solve's regulariser ``eps_c`` would
