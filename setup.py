@@ -1,9 +1,22 @@
 """VINGS-ROS: installable both as a pip package and as an ament_python ROS 2 package."""
+import importlib.util
+import sys
 from glob import glob
+from pathlib import Path
 
 from setuptools import find_packages, setup
 
 PACKAGE = "vings_ros"
+
+
+def _registry():
+    """vings_ros/registry.py (plain data), loaded by path: the nodes' console scripts."""
+    path = Path(__file__).resolve().parent / "vings_ros" / "registry.py"
+    spec = importlib.util.spec_from_file_location("_vings_registry", path)
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = mod        # dataclasses look their module up there
+    spec.loader.exec_module(mod)
+    return mod
 
 setup(
     name=PACKAGE,
@@ -30,9 +43,7 @@ setup(
     entry_points={
         "console_scripts": [
             "vings = vings_ros.cli:main",
-            "frontend_node = vings_ros.frontend_node:main",
-            "mapper_node = vings_ros.mapper_node:main",
-            "recorder_node = vings_ros.recorder:main",
+            *_registry().console_scripts(),
         ],
     },
 )

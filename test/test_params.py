@@ -6,42 +6,83 @@ from pathlib import Path
 import pytest
 import yaml
 
-from vings_core.config import ConfigError, load_section, read_params_file
+from vings_core.config import ConfigError, load_section, params_layout, read_params_file
+from vings_ros.node_common import check_params_file, graph_layout, section_classes
 from vings_ros.params import default_params_file, default_sections
 
 REPO = Path(__file__).resolve().parents[1]
 
 
+def _load(cls, section, path):
+    """``load_section`` with the graph's params layout (its node sections)."""
+    layout = graph_layout()
+    return load_section(cls, section, path, sections=layout.sections, nodes=layout.nodes)
+
+
 def test_shipped_params_file_has_every_field_and_nothing_else():
     path = default_params_file()
     assert path == REPO / "params" / "vings.yaml"
-    shipped = read_params_file(path)
+    layout = graph_layout()
+    shipped = read_params_file(path, layout.sections, nodes=layout.nodes)
     defaults = default_sections()
-    assert set(shipped) == set(defaults)
+    assert set(shipped) == set(defaults) == set(layout.sections)
     for sec, vals in defaults.items():
         assert set(shipped[sec]) == set(vals), f"section {sec} drifted from its dataclass"
 
 
 def test_every_section_loads_into_its_config():
-    from vings_core.frontend import FrontendConfig
-    from vings_core.mapping import MapperConfig
-    from vings_core.pipeline import RunConfig
-    from vings_ros.node_common import NodeConfig
     path = default_params_file()
-    for cls, sec in ((FrontendConfig, "frontend"), (MapperConfig, "mapping"), (RunConfig, "run"),
-                     (NodeConfig, "ros")):
-        assert load_section(cls, sec, path) == cls()
+    configs = check_params_file(path)
+    assert set(configs) == set(section_classes())
+    for sec, cls in section_classes().items():
+        assert configs[sec] == cls(), sec
+    # the library reads the graph's file through the graph's layout (vings run's SlamRunner)
+    from vings_core.mapping import MapperConfig
+    with params_layout(graph_layout()):
+        assert load_section(MapperConfig, "mapping", path) == MapperConfig()
+    with pytest.raises(ConfigError, match="unknown parameter section.*'frontend_node'"):
+        load_section(MapperConfig, "mapping", path)          # the library's own layout
+
+
+def test_params_writer_writes_enums_as_strings(tmp_path):
+    from vings_ros.node_config import FrontendNodeConfig, QueuePolicy
+    from vings_ros.params import format_params_file
+    text = format_params_file(default_sections())
+    assert "queue_policy: keep_newest" in text and "QueuePolicy" not in text and "!!python" not in text
+    p = tmp_path / "p.yaml"
+    p.write_text(text)
+    assert _load(FrontendNodeConfig, "frontend_node", p).queue_policy is QueuePolicy.KEEP_NEWEST
 
 
 def test_invalid_values_are_named(tmp_path):
-    from vings_ros.node_common import NodeConfig
+    from vings_ros.node_config import FrontendNodeConfig
     p = tmp_path / "p.yaml"
-    p.write_text(yaml.safe_dump({"/**": {"ros__parameters": {"ros": {"queue_policy": "newest"}}}}))
-    with pytest.raises(ConfigError, match="queue_policy must be one of"):
-        load_section(NodeConfig, "ros", p)
-    p.write_text(yaml.safe_dump({"/**": {"ros__parameters": {"ros": {"queue_polcy": "x"}}}}))
-    with pytest.raises(ConfigError, match=r"p.yaml: ros: unknown parameter 'queue_polcy'"):
-        load_section(NodeConfig, "ros", p)
+    p.write_text(yaml.safe_dump({"/**": {"ros__parameters": {"frontend_node": {"queue_policy": "newest"}}}}))
+    with pytest.raises(ConfigError, match=r"frontend_node.queue_policy: expected one of 'keep_newest', "
+                                          r"'backpressure', got 'newest'"):
+        _load(FrontendNodeConfig, "frontend_node", p)
+    p.write_text(yaml.safe_dump({"/**": {"ros__parameters": {"frontend_node": {"queue_polcy": "x"}}}}))
+    with pytest.raises(ConfigError, match=r"p.yaml: frontend_node: unknown parameter 'queue_polcy'"):
+        _load(FrontendNodeConfig, "frontend_node", p)
+
+
+@pytest.mark.parametrize("old,new", [("ros.checkpoint_path", "mapper_node.checkpoint_path"),
+                                     ("ros.mapper_nice", "mapper_node.nice"),
+                                     ("ros.queue_policy", "frontend_node.queue_policy")])
+def test_node_settings_in_the_shared_section_name_their_section(tmp_path, old, new):
+    """The nodes' own settings live in their sections: an old ``ros.<key>`` names its new place,
+    in a params file (vings run, vings launch, the nodes) and as a -p override."""
+    from vings_ros.launch import Launcher, LaunchOptions
+    from vings_ros.node_common import check_parameters, param_rules
+    key = old.split(".")[1]
+    p = tmp_path / "p.yaml"
+    p.write_text(yaml.safe_dump({"/**": {"ros__parameters": {"ros": {key: "x"}}}}))
+    with pytest.raises(ConfigError, match=rf"p.yaml: {old} moved to {new}$"):
+        check_params_file(p)
+    with pytest.raises(ConfigError, match=rf"vings launch: {old} moved to {new}$"):
+        Launcher(LaunchOptions(params_file=str(p)))
+    with pytest.raises(ConfigError, match=rf"vings node: {old} moved to {new}$"):
+        check_parameters(*param_rules(["n", "--ros-args", "-p", f"{old}:=x"]), "vings node")
 
 
 def test_a_parameter_given_twice_is_an_error(tmp_path):
@@ -67,7 +108,8 @@ def test_replaced_parameter_names_its_successor(tmp_path):
 
 def test_input_queue_policies():
     from vings_ros.node_common import InputQueue
-    q = InputQueue("keep_newest")
+    from vings_ros.node_config import QueuePolicy
+    q = InputQueue(QueuePolicy.KEEP_NEWEST)
     for i in range(5):
         q.put(i)
     assert q.get(0) == 4 and q.dropped == 4 and q.get(0) is None
@@ -92,19 +134,20 @@ def test_lists_rcl_cannot_hold_are_refused_with_the_key(tmp_path):
     assert read_params_file(p)["mapping"]["background"] == [0.0, 0.5, 0.0]
 
 
-@pytest.mark.parametrize("key,value,match", [
-    ("diagnostics_period_s", 0.0, "diagnostics_period_s must be > 0"),
-    ("diagnostics_period_s", -1.0, "diagnostics_period_s must be > 0"),
-    ("max_points", -1, "max_points"),
-    ("world_frame", "", "world_frame must be a frame id"),
-    ("camera_frame", "/cam", "camera_frame must be a frame id"),
+@pytest.mark.parametrize("section,key,value,match", [
+    ("ros", "diagnostics_period_s", 0.0, "diagnostics_period_s must be > 0"),
+    ("ros", "diagnostics_period_s", -1.0, "diagnostics_period_s must be > 0"),
+    ("mapper_node", "max_points", -1, "max_points"),
+    ("mapper_node", "nice", 20, "nice must be in 0..19"),
+    ("frontend_node", "queue_size", 0, "queue_size must be >= 1"),
+    ("ros", "world_frame", "", "world_frame must be a frame id"),
+    ("ros", "camera_frame", "/cam", "camera_frame must be a frame id"),
 ])
-def test_node_settings_that_fail_later_are_refused_at_start(tmp_path, key, value, match):
-    from vings_ros.node_common import NodeConfig
+def test_node_settings_that_fail_later_are_refused_at_start(tmp_path, section, key, value, match):
     p = tmp_path / "p.yaml"
-    p.write_text(yaml.safe_dump({"/**": {"ros__parameters": {"ros": {key: value}}}}))
-    with pytest.raises(ConfigError, match=match):
-        load_section(NodeConfig, "ros", p)
+    p.write_text(yaml.safe_dump({"/**": {"ros__parameters": {section: {key: value}}}}))
+    with pytest.raises(ConfigError, match=rf"p.yaml: {section}: {match}"):
+        check_params_file(p)
 
 
 def test_lenient_reading_keeps_what_rclpy_and_other_nodes_own(tmp_path):
@@ -112,20 +155,27 @@ def test_lenient_reading_keeps_what_rclpy_and_other_nodes_own(tmp_path):
     the nodes (rclpy takes them): the nodes' pre-check and the launcher read leniently."""
     from vings_ros.launch import Launcher, LaunchOptions
     p = tmp_path / "p.yaml"
-    p.write_text("/**:\n  ros__parameters:\n    use_sim_time: true\n    ros:\n      shutdown_timeout_s: 30.0\n"
+    layout = graph_layout()
+
+    def read(strict: bool = True) -> dict:
+        return read_params_file(p, layout.sections, strict, layout.nodes)
+
+    p.write_text("/**:\n  ros__parameters:\n    use_sim_time: true\n    mapper_node:\n      shutdown_timeout_s: 30.0\n"
                  "    qos_overrides:\n      /clock:\n        subscription:\n          depth: 5\n"
                  "other_node:\n  ros__parameters:\n    gain: [1.0, 2.0]\n")
     # `vings run --params` reads the same file as the nodes: rclpy's keys and blocks for other
-    # nodes are not VINGS sections (it refused them, so a file that ran the nodes failed there)
-    assert read_params_file(p) == read_params_file(p, strict=False) == {"ros": {"shutdown_timeout_s": 30.0}}
+    # nodes are not VINGS sections
+    assert read() == read(strict=False) == {"mapper_node": {"shutdown_timeout_s": 30.0}}
     p.write_text(p.read_text() + "mapper_node:\n  ros__parameters:\n    mappping: {window_size: 4}\n")
     with pytest.raises(ConfigError, match="unknown parameter section.*'mappping'"):
-        read_params_file(p)                                  # a misspelt section of ours: strict
-    assert read_params_file(p, strict=False) == {"ros": {"shutdown_timeout_s": 30.0}}
+        read()                                               # a misspelt section of ours: strict
+    assert read(strict=False) == {"mapper_node": {"shutdown_timeout_s": 30.0}}
     assert Launcher(LaunchOptions(params_file=str(p))).stop_timeout["mapper_node"] == 180.0
+    p.write_text("/**:\n  ros__parameters:\n    mapper_node: {shutdown_timeout_s: 300.0}\n")
+    assert Launcher(LaunchOptions(params_file=str(p))).stop_timeout["mapper_node"] == 360.0
     p.write_text("/**:\n  ros__parameters:\n    use_sim_time: true\n    mapping.background: [0, 1, 1.0]\n")
     with pytest.raises(ConfigError, match="mapping.background: ROS 2 list parameters hold one"):
-        read_params_file(p, strict=False)                    # rcl would refuse it anyway
+        read(strict=False)                                   # rcl would refuse it anyway
 
 
 def test_params_read_like_rcl_types_them(tmp_path):
@@ -147,12 +197,14 @@ def test_overrides_rcl_would_ignore_are_refused_before_any_node_starts(tmp_path)
     """With a params file, rcl keeps the FILE's value when a -p override has another type
     (`-p mapping.points_per_keyframe:=1e4` over 20000): the launcher and every node refuse it."""
     from vings_ros.launch import Launcher, LaunchOptions
-    from vings_ros.node_common import check_parameters, param_rules, run_node
+    from vings_ros.node_base import run_node
+    from vings_ros.node_common import check_parameters, param_rules
     f = str(default_params_file())
     for name, raw, msg in (("mapping.points_per_keyframe", "1e4", "is a double, but the params file gives "
                             "mapping.points_per_keyframe as integer 20000"),
-                           ("ros.resume", "0", "is an integer, but the params file gives ros.resume as bool"),
-                           ("ros.queue_size", "abc", "is a string"),
+                           ("mapper_node.resume", "0", "is an integer, but the params file gives "
+                            "mapper_node.resume as bool"),
+                           ("frontend_node.queue_size", "abc", "is a string"),
                            ("frontend.window", "8.0", "is a double")):
         with pytest.raises(ConfigError, match=msg):
             Launcher(LaunchOptions(params_file=f, extra_params={name: raw}))
@@ -186,9 +238,9 @@ while True:
 """
 
 LAUNCH_CHILD = """
-import sys
-from vings_ros import launch as L
-L.NODES = {k: f"stand_in_{k}" for k in L.NODES}
+import dataclasses
+from vings_ros import launch as L, registry
+registry.NODES = tuple(dataclasses.replace(n, module=f"stand_in_{n.name}") for n in registry.NODES)
 print("rc", L.Launcher(L.LaunchOptions(nodes=["frontend_node", "mapper_node"])).run(), flush=True)
 """
 

@@ -21,8 +21,8 @@ pytest.importorskip("rclpy")
 pytestmark = pytest.mark.ros
 
 REPO = Path(__file__).resolve().parents[1]
-FAST_PARAMS = ["mapping.iters_per_keyframe=5", "mapping.points_per_keyframe=3000",
-               "mapping.refine_iters=2", "ros.checkpoint_period_s=0.0", "ros.shutdown_timeout_s=20.0"]
+FAST_PARAMS = ["mapping.iters_per_keyframe=5", "mapping.points_per_keyframe=3000", "mapping.refine_iters=2",
+               "mapper_node.checkpoint_period_s=0.0", "mapper_node.shutdown_timeout_s=20.0"]
 
 
 def _domain() -> int:
@@ -405,8 +405,9 @@ def test_mapper_killed_and_restarted_resumes_from_checkpoint(synthetic_mcap, tmp
     cmd = [sys.executable, "-m", "vings_ros.mapper_node", "--ros-args", "--params-file",
            str(default_params_file())]
     for p in ("mapping.iters_per_keyframe:=3", "mapping.points_per_keyframe:=2000",
-              "mapping.refine_iters:=1", f"ros.checkpoint_path:={ck}", "ros.checkpoint_every_keyframes:=1",
-              "ros.checkpoint_period_s:=0.0", "ros.render_every_keyframes:=0", "ros.mapper_nice:=0"):
+              "mapping.refine_iters:=1", f"mapper_node.checkpoint_path:={ck}",
+              "mapper_node.checkpoint_every_keyframes:=1", "mapper_node.checkpoint_period_s:=0.0",
+              "mapper_node.render_every_keyframes:=0", "mapper_node.nice:=0"):
         cmd += ["-p", p]
 
     def ckpt_stamps() -> dict:

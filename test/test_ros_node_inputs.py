@@ -26,8 +26,8 @@ import numpy as np, rclpy
 from sensor_msgs.msg import CameraInfo
 import msg_adapters as ma
 calib = sys.argv[1]
-rclpy.init(args=["x", "--ros-args", "-p", f"ros.calib_file:={calib}",
-                 "-p", "ros.queue_policy:=backpressure"])
+rclpy.init(args=["x", "--ros-args", "-p", f"frontend_node.calib_file:={calib}",
+                 "-p", "frontend_node.queue_policy:=backpressure"])
 from vings_ros.frontend_node import FrontendNode
 node = FrontendNode()
 rng = np.random.default_rng(0)
@@ -77,7 +77,7 @@ MAPPER_SCRIPT = """
 import json
 import numpy as np, rclpy
 import msg_adapters as ma
-rclpy.init(args=["x", "--ros-args", "-p", "ros.checkpoint_period_s:=0.0"])
+rclpy.init(args=["x", "--ros-args", "-p", "mapper_node.checkpoint_period_s:=0.0"])
 from vings_ros.mapper_node import MapperNode
 import torch
 from msg_adapters.keyframe import keyframe_to_msgs
@@ -134,7 +134,7 @@ import numpy as np, rclpy
 from sensor_msgs.msg import CameraInfo, Imu
 import msg_adapters as ma
 from msg_adapters.diagnostics import parse_diagnostic_array
-rclpy.init(args=["x", "--ros-args", "-p", "ros.queue_policy:=backpressure"])
+rclpy.init(args=["x", "--ros-args", "-p", "frontend_node.queue_policy:=backpressure"])
 from vings_ros.frontend_node import FrontendNode
 node = FrontendNode()
 sent = []
@@ -156,12 +156,12 @@ node._on_camera_info(info(64, 48))
 for i in range(2):
     node._on_image(img(10**9 + i * 10**8, 64, 48))
 drain()
-node._publish_diagnostics()
+node.publish_diagnostics()
 node._on_camera_info(info(32, 24))        # the camera changes while running
 for i in range(2, 8):
     node._on_image(img(10**9 + i * 10**8, 32, 24))
 drain()
-node._publish_diagnostics()
+node.publish_diagnostics()
 bad = Imu()
 bad.header.stamp.sec = 1
 bad.angular_velocity.x = math.nan
@@ -211,8 +211,8 @@ def test_nodes_refuse_outputs_and_models_they_would_fail_on_later(tmp_path):
     # a checkpoint path that cannot be written: refused at start, not at the first checkpoint
     blocker = tmp_path / "file"
     blocker.write_text("x")
-    res = _run(START_ERROR_SCRIPT, "mapper", "-p", f"ros.checkpoint_path:={blocker}/sub/ckpt.npz")
-    assert res["error"] and res["error"].startswith("ConfigError: ros.checkpoint_path"), res
+    res = _run(START_ERROR_SCRIPT, "mapper", "-p", f"mapper_node.checkpoint_path:={blocker}/sub/ckpt.npz")
+    assert res["error"] and res["error"].startswith("ConfigError: mapper_node.checkpoint_path"), res
     # a temporary file of a mapper killed mid-write is removed at start
     ck = tmp_path / "ok" / "map.npz"
     ck.parent.mkdir()
@@ -220,7 +220,7 @@ def test_nodes_refuse_outputs_and_models_they_would_fail_on_later(tmp_path):
     stale.write_bytes(b"half a checkpoint")
     other = ck.parent / ".other.npz.abc123.tmp"
     other.write_bytes(b"not ours")
-    res = _run(START_ERROR_SCRIPT, "mapper", "-p", f"ros.checkpoint_path:={ck}")
+    res = _run(START_ERROR_SCRIPT, "mapper", "-p", f"mapper_node.checkpoint_path:={ck}")
     assert res["error"] is None and not stale.exists() and other.exists(), res
     # a learned flow model that is not there: refused at start, not when the camera appears
     res = _run(START_ERROR_SCRIPT, "frontend", "-p", "frontend.flow_method:=torchscript",

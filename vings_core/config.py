@@ -2,25 +2,31 @@
 
 A params file is what ``--ros-args --params-file`` reads::
 
-    frontend_node:            # node name (or /** for every node)
+    /**:                      # every node (or a node name: that node's block)
       ros__parameters:
         frontend:             # stage section
           keyframe_flow_px: 2.4
 
 ``vings run --params FILE`` reads the same file: :func:`load_section` merges the ``/**`` block and
-every node block, then picks one stage section. Unknown keys and values of the wrong type raise a
+the blocks of the nodes the caller names, then picks one section. Which sections a file may hold
+and which node blocks are read is a :class:`ParamsLayout`: the library's own sections
+(:data:`LIBRARY_SECTIONS`) unless the caller (an application with its own sections, such as the ROS
+node graph) gives one. Unknown sections and keys and values of the wrong type raise a
 :class:`ConfigError` naming the file and key.
 """
 from __future__ import annotations
 
+import contextlib
+import contextvars
 import dataclasses
 import enum
+import importlib
 import math
 import os
 import re
 import typing
 from pathlib import Path
-from typing import Any, Type, TypeVar
+from typing import Any, Iterable, Iterator, Optional, Type, TypeVar
 
 import yaml
 
@@ -30,14 +36,51 @@ from .util import describe_yaml_error, read_utf8_text
 C = TypeVar("C")
 
 
-#: top-level sections of ``ros__parameters`` (the nodes read the same names as ``section.key``)
-KNOWN_SECTIONS = ("ros", "frontend", "mapping", "run")
-
-#: node names of the VINGS graph: a params-file block for another node (rviz, a driver) is not ours
-VINGS_NODES = ("frontend_node", "mapper_node", "recorder_node")
+#: the library's stage sections of ``ros__parameters`` -> their config dataclass ("module:Class")
+LIBRARY_SECTIONS: dict[str, str] = {
+    "frontend": "vings_core.frontend.config:FrontendConfig",
+    "mapping": "vings_core.mapping.config:MapperConfig",
+    "run": "vings_core.pipeline:RunConfig",
+    "exchange": "vings_core.exchange:ExchangeConfig",
+}
 
 #: parameters rclpy itself declares or reads (``qos_overrides.*`` too): not a VINGS section
 ROS_BUILTIN_KEYS = ("use_sim_time", "start_type_description_service", "qos_overrides")
+
+
+def config_class(ref: str) -> type:
+    """The class a ``"module:Class"`` reference names (see :data:`LIBRARY_SECTIONS`)."""
+    module, _, name = ref.partition(":")
+    return getattr(importlib.import_module(module), name)
+
+
+@dataclasses.dataclass(frozen=True)
+class ParamsLayout:
+    """What a params file holds for its reader.
+
+    ``sections``: the sections of ``ros__parameters`` (another one is a :class:`ConfigError`).
+    ``nodes``: node names whose blocks are read besides ``/**``; the blocks of other nodes (RViz,
+    a camera driver) are checked for their ``ros__parameters`` mapping and otherwise skipped."""
+
+    sections: tuple[str, ...]
+    nodes: tuple[str, ...] = ()
+
+
+#: the layout a reader uses when its caller names none: see :func:`params_layout`
+_LAYOUT: contextvars.ContextVar[ParamsLayout] = contextvars.ContextVar(
+    "vings_params_layout", default=ParamsLayout(tuple(LIBRARY_SECTIONS)))
+
+
+@contextlib.contextmanager
+def params_layout(layout: ParamsLayout) -> Iterator[ParamsLayout]:
+    """Within the block, :func:`read_params_file` and :func:`load_section` calls that name no
+    ``sections`` / ``nodes`` use ``layout``: library code (``SlamRunner``) reading an
+    application's file, e.g. the ROS graph's with its node sections."""
+    token = _LAYOUT.set(layout)
+    try:
+        yield layout
+    finally:
+        _LAYOUT.reset(token)
 
 
 class _RosYamlLoader(yaml.SafeLoader):
@@ -56,14 +99,21 @@ def ros_yaml_load(text: str) -> Any:
     return yaml.load(text, Loader=_RosYamlLoader)  # noqa: S506 - a SafeLoader subclass
 
 
-def read_params_file(path: str | os.PathLike, sections: tuple = KNOWN_SECTIONS, strict: bool = True) -> dict:
-    """Merged ``ros__parameters`` of every node block of a ROS 2 params YAML (``/**`` first).
+def read_params_file(path: str | os.PathLike, sections: Optional[Iterable[str]] = None,
+                     strict: bool = True, nodes: Optional[Iterable[str]] = None) -> dict:
+    """Merged ``ros__parameters`` of the ``/**`` block and the blocks of ``nodes`` of a ROS 2
+    params YAML (``/**`` first).
 
     Dotted names (``mapping.window_size: 4``, valid ROS 2 params syntax) are expanded into their
-    sections; a section other than ``sections`` (default :data:`KNOWN_SECTIONS`; e.g. a misspelt
-    ``mappping``) is a :class:`ConfigError`, as the nodes treat it; with ``strict=False`` other
-    keys (rclpy's ``use_sim_time``, ``qos_overrides``, blocks for other nodes) are left out instead.
-    Lists rcl cannot hold (mixed types, empty) are refused in either case."""
+    sections; a section other than ``sections`` (e.g. a misspelt ``mappping``) is a
+    :class:`ConfigError`, as the nodes treat it; with ``strict=False`` other keys (rclpy's
+    ``use_sim_time``, ``qos_overrides``) are left out instead. ``sections`` / ``nodes`` default to
+    the active :class:`ParamsLayout` (:func:`params_layout`; the library's sections and ``/**``
+    alone otherwise). Every block must have a ``ros__parameters`` mapping. Lists rcl cannot hold
+    (mixed types, empty) are refused in either case."""
+    layout = _LAYOUT.get()
+    sections = tuple(layout.sections if sections is None else sections)
+    ours = ("**", *(layout.nodes if nodes is None else nodes))
     path = Path(path)
     if not path.is_file():
         raise ConfigError(f"{path}: params file not found")
@@ -84,7 +134,7 @@ def read_params_file(path: str | os.PathLike, sections: tuple = KNOWN_SECTIONS, 
         if not isinstance(params, dict):
             raise ConfigError(f"{path}: node block {node!r}: 'ros__parameters' must be a mapping of "
                               f"sections, got {params!r}")
-        if str(node).rstrip("/").split("/")[-1] not in ("**", *VINGS_NODES):
+        if str(node).rstrip("/").split("/")[-1] not in ours:
             continue                  # another node's block (rviz, a camera driver): not ours
         _deep_merge(merged, _expand_dotted(params, f"{path}: node block {node!r}"))
     _check_ros_lists(merged, f"{path}")
@@ -238,13 +288,14 @@ def _coerce(tp: Any, val: Any, where: str) -> Any:
 
 
 def load_section(cls: Type[C], section: str, params_file: str | os.PathLike | None = None,
-                 overrides: dict | None = None, sections: tuple = KNOWN_SECTIONS) -> C:
+                 overrides: dict | None = None, sections: Optional[Iterable[str]] = None,
+                 nodes: Optional[Iterable[str]] = None) -> C:
     """Config dataclass ``cls`` from section ``section`` of ``params_file`` (defaults if None);
-    ``sections``: the sections the file may have (:func:`read_params_file`)."""
+    ``sections`` / ``nodes``: what the file holds for this reader (:func:`read_params_file`)."""
     values: dict = {}
     where = section
     if params_file is not None:
-        merged = read_params_file(params_file, sections)
+        merged = read_params_file(params_file, sections, nodes=nodes)
         sec = merged.get(section, {})
         if not isinstance(sec, dict):
             raise ConfigError(f"{params_file}: section {section!r} must be a mapping")

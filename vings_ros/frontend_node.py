@@ -1,7 +1,8 @@
 """``frontend_node``: images (+ camera_info, IMU) in; odometry, path and keyframe packets out.
 
 It only translates messages (``msg_adapters``) and calls :class:`vings_core.frontend.Frontend`, the
-class ``vings run`` uses. Topics and parameters: docs/ros.md.
+class ``vings run`` uses. Settings: params sections ``frontend_node`` (node_config.FrontendNodeConfig),
+``ros``, ``frontend`` and ``run``. Topics and parameters: docs/ros.md.
 """
 from __future__ import annotations
 
@@ -10,22 +11,19 @@ import time
 from typing import Optional
 
 import numpy as np
-from geometry_msgs.msg import PoseStamped  # noqa: F401  (type of keyframe pose parts)
-from nav_msgs.msg import Path
-from rclpy.node import Node
+from geometry_msgs.msg import PoseStamped
+from nav_msgs.msg import Odometry, Path
 from sensor_msgs.msg import CameraInfo, Image, Imu
 from std_msgs.msg import Header
 
 from msg_adapters import topics as T
 from msg_adapters.camera_info import camera_info_to_camera
-from msg_adapters.diagnostics import diagnostic_array, make_status, tracking_status
+from msg_adapters.diagnostics import TRACKING_STATE_LEVEL
 from msg_adapters.image import FrameDecoder
 from msg_adapters.imu import msg_to_imu_sample
-from msg_adapters.keyframe import keyframe_to_msgs, PART_TOPICS
+from msg_adapters.keyframe import PART_TOPICS, keyframe_to_msgs
 from msg_adapters.pose import estimate_to_odometry, path_to_trajectory, trajectory_to_path
 from msg_adapters.stamps import header_ns
-from nav_msgs.msg import Odometry
-from diagnostic_msgs.msg import DiagnosticArray
 from vings_core.errors import InputError
 from vings_core.frontend import Frontend, FrontendConfig
 from vings_core.frontend.flow import make_flow_estimator
@@ -34,8 +32,10 @@ from vings_core.io.undistort import Undistorter
 from vings_core.pipeline import FrontendPoseLink, PoseCorrections, RunConfig
 from vings_core.types import CameraModel, Frame, Trajectory
 
-from .node_common import (InputQueue, NodeConfig, RateMeter, Worker, node_sections, rss_mb,
-                          run_node, section_config, worth_reporting as _report)
+from . import registry
+from .node_base import Level, NodeStatus, StageNode
+from .node_common import RateMeter, worth_reporting as _report
+from .node_config import FrontendNodeConfig, QueuePolicy
 
 #: front-end keyframe poses after later window BA moved them (nav_msgs/Path, each pose stamped with
 #: its keyframe stamp); the mapper applies them as increments (vings_core.pipeline.MapperPoseLink).
@@ -44,26 +44,26 @@ FRONTEND_KEYFRAMES_TOPIC = T.FRONTEND_KEYFRAMES_TOPIC
 BAD_STREAK_ERROR = 5
 
 
-class FrontendNode(Node):
-    def __init__(self) -> None:
-        super().__init__("frontend_node", automatically_declare_parameters_from_overrides=True)
-        secs = node_sections(self)
-        self.ncfg: NodeConfig = section_config(NodeConfig, secs["ros"], "frontend_node: ros")
-        self.fcfg: FrontendConfig = section_config(FrontendConfig, secs["frontend"], "frontend_node: frontend")
-        # the pose write-back policy is the one `vings run` uses (section run)
-        self.rcfg: RunConfig = section_config(RunConfig, secs["run"], "frontend_node: run")
-        self.error: Optional[BaseException] = None
+class FrontendNode(StageNode):
+    spec = registry.node_spec("frontend_node")
+    STATUS_NAME = "vings/frontend"
+    WORKER_STOP_TIMEOUT_S = 60.0
+
+    settings: FrontendNodeConfig
+
+    def setup(self) -> None:
+        self.fcfg: FrontendConfig = self.config("frontend")
+        # the pose exchange's settings as `vings run` reads them (sections run, exchange)
+        self.rcfg: RunConfig = self.config("run")
         self.raw_camera: Optional[CameraModel] = None
         self.undist: Optional[Undistorter] = None
         self.frontend: Optional[Frontend] = None
         self.decoder = FrameDecoder(T.IMAGE_TOPIC)
         # keep_newest: depth 1, a new image replaces the waiting one (dropped and counted)
-        self.queue: InputQueue = InputQueue(self.ncfg.queue_policy, 1 if self.ncfg.queue_policy ==
-                                            "keep_newest" else self.ncfg.queue_size)
-        self._corrections: list[dict[int, np.ndarray]] = []
+        policy = self.settings.queue_policy
+        self.queue = self.input_queue(policy, 1 if policy is QueuePolicy.KEEP_NEWEST
+                                      else self.settings.queue_size)
         self._camera_ready = threading.Event()
-        self.link = FrontendPoseLink(self.rcfg)
-        self._lock = threading.Lock()
         self.rate = RateMeter()
         self.imu_count = 0
         self.bad_imu = 0
@@ -77,11 +77,11 @@ class FrontendNode(Node):
         # one that ends the node when the camera appears
         self._flow = make_flow_estimator(self.fcfg)
         self._last_stamp: Optional[int] = None
-        self.last_state = "waiting"
-        if self.ncfg.calib_file:
-            calib = load_calibration_yaml(self.ncfg.calib_file)
+        calib_file = self.settings.calib_file
+        if calib_file:
+            calib = load_calibration_yaml(calib_file)
             if calib.camera is None:
-                raise InputError(f"{self.ncfg.calib_file}: calibration has no camera")
+                raise InputError(f"{calib_file}: calibration has no camera")
             self._set_camera(calib.camera)
 
         sq = T.sensor_qos
@@ -91,35 +91,27 @@ class FrontendNode(Node):
         self.create_subscription(CameraInfo, T.CAMERA_INFO_TOPIC, self._on_camera_info,
                                  sq(T.CAMERA_INFO_DEPTH))
         self.create_subscription(Imu, T.IMU_TOPIC, self._on_imu, sq(T.IMU_DEPTH))
-        self.create_subscription(Path, T.KEYFRAME_CORRECTIONS_TOPIC, self._on_corrections,
-                                 sq(T.POSE_EXCHANGE_DEPTH))
         self.pub_odom = self.create_publisher(Odometry, T.ODOMETRY_TOPIC, sq(T.OUTPUT_DEPTH * 10))
         self.pub_path = self.create_publisher(Path, T.PATH_TOPIC, T.latched_qos(1))
-        self.pub_kf_path = self.create_publisher(Path, FRONTEND_KEYFRAMES_TOPIC, sq(T.POSE_EXCHANGE_DEPTH))
         self.pub_kf = {p: self.create_publisher(type_, PART_TOPICS[p], sq(T.OUTPUT_DEPTH * 4))
                        for p, type_ in (("image", Image), ("depth", Image), ("inv_depth_var", Image),
                                         ("pose", PoseStamped), ("camera_info", CameraInfo))}
         self.pub_ack = self.create_publisher(Header, T.PROCESSED_TOPIC, sq(T.ACK_DEPTH))
-        self.pub_diag = self.create_publisher(DiagnosticArray, T.DIAGNOSTICS_TOPIC, sq(10))
-        self.create_timer(self.ncfg.diagnostics_period_s, self._publish_diagnostics)
+        self._exchange_setup()
         self._last_path_pub = 0.0
-        self.worker = Worker("vings-frontend", self._step, self._fail)
-        self.worker.start()
-        self.get_logger().info(f"front end ready (queue policy {self.ncfg.queue_policy}); waiting "
-                               f"for {T.IMAGE_TOPIC} and {'calibration' if self.raw_camera is None else 'images'}")
+
+    def ready_message(self) -> str:
+        return (f"front end ready (queue policy {self.settings.queue_policy.value}); waiting for "
+                f"{T.IMAGE_TOPIC} and {'calibration' if self.raw_camera is None else 'images'}")
 
     # ------------------------------------------------------------------------------ callbacks
-
-    def _fail(self, e: BaseException) -> None:
-        self.get_logger().error(f"front end failed: {e}")
-        self.error = e
 
     def _on_image(self, msg: Image) -> None:
         self.queue.put(msg)
 
     def _on_camera_info(self, msg: CameraInfo) -> None:
-        if self.ncfg.calib_file:
-            return      # ros.calib_file gives the camera
+        if self.settings.calib_file:
+            return      # frontend_node.calib_file gives the camera
         try:
             cam = camera_info_to_camera(msg, T.CAMERA_INFO_TOPIC, self._rectified)
         except InputError as e:
@@ -152,19 +144,9 @@ class FrontendNode(Node):
             return
         self.imu_count += 1
 
-    def _on_corrections(self, msg: Path) -> None:
-        try:
-            traj = path_to_trajectory(msg, T.KEYFRAME_CORRECTIONS_TOPIC)
-            batch = header_ns(msg.header, T.KEYFRAME_CORRECTIONS_TOPIC)   # the correction batch number
-        except InputError as e:
-            self.get_logger().warning(f"ignored a malformed correction message: {e}")
-            return
-        with self._lock:
-            self._corrections.append(PoseCorrections(zip(traj.stamps_ns.tolist(), traj.poses), batch=batch))
-
     def _set_camera(self, raw: CameraModel) -> None:
-        w = self.ncfg.width or None
-        h = self.ncfg.height or None
+        w = self.settings.width or None
+        h = self.settings.height or None
         self.undist = Undistorter(raw, w, h, undistort=True)
         self.raw_camera = raw
         self.frontend = Frontend(self.fcfg, self.undist.camera, flow=self._flow)
@@ -174,7 +156,7 @@ class FrontendNode(Node):
 
     # ----------------------------------------------------------------------------- the worker
 
-    def _step(self) -> None:
+    def step(self) -> None:
         msg = self.queue.get(timeout=0.1)
         if msg is None:
             return
@@ -194,12 +176,13 @@ class FrontendNode(Node):
         if self.frontend is None:
             # the image and its camera_info travel on two topics: the first image may overtake
             # its calibration, so wait for it briefly instead of dropping the image
-            self._camera_ready.wait(self.ncfg.calib_wait_s)
+            self._camera_ready.wait(self.settings.calib_wait_s)
         if self.frontend is None:
             self.frames_without_camera += 1
             if _report(self.frames_without_camera):
                 self.get_logger().warning(f"no calibration yet (no {T.CAMERA_INFO_TOPIC} and no "
-                                          f"ros.calib_file): {self.frames_without_camera} images skipped")
+                                          f"frontend_node.calib_file): {self.frames_without_camera} "
+                                          f"images skipped")
             self._ack(msg.header)
             return
         try:
@@ -213,16 +196,15 @@ class FrontendNode(Node):
         frame = Frame(stamp, self.undist(frame.image), self.undist.camera)
         self._last_stamp = stamp
         self.bad_streak = 0
-        self._take_corrections()
+        self._exchange_receive()
         ests = self.frontend.process(frame)
         for est in ests:
             if est.state == "tracking":
-                self.pub_odom.publish(estimate_to_odometry(est, self.ncfg.world_frame,
-                                                           self.ncfg.camera_frame, T.ODOMETRY_TOPIC))
-        self.last_state = ests[-1].state if ests else self.frontend.state
+                self.pub_odom.publish(estimate_to_odometry(est, self.ros.world_frame,
+                                                           self.ros.camera_frame, T.ODOMETRY_TOPIC))
         # as in `vings run`: moved keyframe poses first, then the new keyframes
         kfs = self.frontend.pop_keyframes()
-        self._publish_moved_keyframes()
+        self._exchange_send()
         self._publish_keyframes(kfs)
         self.rate.tick()
         now = time.monotonic()
@@ -243,79 +225,100 @@ class FrontendNode(Node):
     def _ack(self, header: Header) -> None:
         self.pub_ack.publish(header)
 
-    def _take_corrections(self) -> None:
+    def _publish_keyframes(self, kfs) -> None:
+        for kf in kfs:
+            msgs = keyframe_to_msgs(kf, self.ros.camera_frame, self.ros.world_frame)
+            for part, m in msgs.as_dict().items():
+                self.pub_kf[part].publish(m)
+            self._exchange_keyframe_sent(kf)
+
+    def _publish_path(self) -> None:
+        traj = self.frontend.trajectory(states=("tracking",), max_poses=self.settings.path_max_poses)
+        if len(traj) == 0:
+            return
+        self.pub_path.publish(trajectory_to_path(traj, self.ros.world_frame))
+
+    def diagnostics(self) -> NodeStatus:
+        st = self.frontend.status() if self.frontend is not None else {
+            "state": "waiting", "reason": "no calibration yet"}
+        state = st.get("state", "waiting")
+        values = {"state": state, "reason": st.get("reason", ""), "frames": st.get("frames", 0),
+                  "keyframes": st.get("keyframes", 0), "rate_hz": self.rate.hz,
+                  "queue_length": len(self.queue), "queue_policy": self.queue.policy,
+                  "frames_dropped": self.queue.dropped, "frames_received": self.queue.received,
+                  "bad_frames": self.bad_frames, "bad_streak": self.bad_streak,
+                  "camera_changes": self.camera_changes,
+                  "imu_samples": self.imu_count, "bad_imu": self.bad_imu,
+                  **self._exchange_values()}
+        if self.bad_streak >= BAD_STREAK_ERROR:
+            # images arrive but none can be used (wrong size after a camera change, bad encoding)
+            return NodeStatus(Level.ERROR, f"the last {self.bad_streak} images were skipped: "
+                                           f"{self._last_skip}", values)
+        return NodeStatus(Level(TRACKING_STATE_LEVEL[state]), st.get("reason") or state, values)
+
+    # ----------------------------------------------------------------------- pose exchange
+    # The mapper's refinements in (corrections), moved front-end keyframe poses out, through
+    # vings_core.pipeline.FrontendPoseLink under the write-back policy of section run.
+
+    def _exchange_setup(self) -> None:
+        self._corrections: list[dict[int, np.ndarray]] = []
+        self._lock = threading.Lock()
+        self.link = FrontendPoseLink(self.rcfg)
+        sq = T.sensor_qos
+        self.create_subscription(Path, T.KEYFRAME_CORRECTIONS_TOPIC, self._exchange_on_message,
+                                 sq(T.POSE_EXCHANGE_DEPTH))
+        self.pub_kf_path = self.create_publisher(Path, FRONTEND_KEYFRAMES_TOPIC, sq(T.POSE_EXCHANGE_DEPTH))
+
+    def _exchange_on_message(self, msg: Path) -> None:
+        try:
+            traj = path_to_trajectory(msg, T.KEYFRAME_CORRECTIONS_TOPIC)
+            batch = header_ns(msg.header, T.KEYFRAME_CORRECTIONS_TOPIC)   # the correction batch number
+        except InputError as e:
+            self.get_logger().warning(f"ignored a malformed correction message: {e}")
+            return
+        with self._lock:
+            self._corrections.append(PoseCorrections(zip(traj.stamps_ns.tolist(), traj.poses), batch=batch))
+
+    def _exchange_receive(self) -> None:
         """The mapper's refinements received since the last frame -> write-back policy."""
         with self._lock:
             pending, self._corrections = self._corrections, []
         for corr in pending:
             self.link.apply_corrections(self.frontend, corr)
 
-    def _publish_keyframes(self, kfs) -> None:
-        for kf in kfs:
-            msgs = keyframe_to_msgs(kf, self.ncfg.camera_frame, self.ncfg.world_frame)
-            for part, m in msgs.as_dict().items():
-                self.pub_kf[part].publish(m)
-            self.link.keyframe_sent(kf)
-
-    def _publish_moved_keyframes(self) -> None:
+    def _exchange_send(self) -> None:
         """Keyframes already sent whose pose changed since last exchanged: one Path of them."""
         moved = self.link.outgoing(self.frontend)
         if not moved:
             return
         # header stamp: the last correction batch processed (the mapper reads the poses against it)
-        self.pub_kf_path.publish(trajectory_to_path(Trajectory.from_poses(moved), self.ncfg.world_frame,
+        self.pub_kf_path.publish(trajectory_to_path(Trajectory.from_poses(moved), self.ros.world_frame,
                                                     stamp_ns=moved.ack))
 
-    def _publish_path(self) -> None:
-        traj = self.frontend.trajectory(states=("tracking",), max_poses=self.ncfg.path_max_poses)
-        if len(traj) == 0:
-            return
-        self.pub_path.publish(trajectory_to_path(traj, self.ncfg.world_frame))
+    def _exchange_keyframe_sent(self, kf) -> None:
+        self.link.keyframe_sent(kf)
 
-    def _publish_diagnostics(self) -> None:
-        st = self.frontend.status() if self.frontend is not None else {
-            "state": "waiting", "reason": "no calibration yet"}
-        values = {"reason": st.get("reason", ""), "frames": st.get("frames", 0),
-                  "keyframes": st.get("keyframes", 0), "rate_hz": self.rate.hz,
-                  "queue_length": len(self.queue), "queue_policy": self.queue.policy,
-                  "frames_dropped": self.queue.dropped, "frames_received": self.queue.received,
-                  "bad_frames": self.bad_frames, "bad_streak": self.bad_streak,
-                  "camera_changes": self.camera_changes,
-                  "imu_samples": self.imu_count, "bad_imu": self.bad_imu, "rss_mb": rss_mb(),
-                  "writeback_policy": self.rcfg.pose_writeback,
-                  "corrections_received": self.link.stats["corrections"],
-                  "corrections_applied": self.link.stats["applied"],
-                  "corrections_rejected": self.link.stats["rejected"]}
-        stamp = self.get_clock().now().nanoseconds
-        state = st.get("state", "waiting")
-        if self.bad_streak >= BAD_STREAK_ERROR:
-            # images arrive but none can be used (wrong size after a camera change, bad encoding)
-            status = make_status("vings/frontend", "error", f"the last {self.bad_streak} images were "
-                                 f"skipped: {self._last_skip}", {"state": state, **values})
-        else:
-            status = tracking_status("vings/frontend", state, values, st.get("reason"))
-        self.pub_diag.publish(diagnostic_array(stamp, [status]))
+    def _exchange_values(self) -> dict:
+        return {"writeback_policy": self.config("exchange").mapper,
+                "corrections_received": self.link.stats["corrections"],
+                "corrections_applied": self.link.stats["applied"],
+                "corrections_rejected": self.link.stats["rejected"]}
 
     # -------------------------------------------------------------------------------- shutdown
 
-    def shutdown(self) -> None:
-        """Stop the worker and flush the keyframes still in the window to the mapper."""
-        self.queue.close()
-        if not self.worker.stop(timeout=60.0):
-            self.get_logger().error("front-end worker did not stop within 60 s")
-            self.error = self.error or RuntimeError("front-end worker did not stop")
-            return
+    def finish(self) -> None:
+        """After the worker: flush the keyframes still in the window to the mapper."""
         if self.frontend is not None and self.error is None:
-            self._take_corrections()
+            self._exchange_receive()
             kfs = self.frontend.finish()
-            self._publish_moved_keyframes()
+            self._exchange_send()
             self._publish_keyframes(kfs)
             self._publish_path()
             time.sleep(0.2)  # let reliable writers hand the last packets over
 
 
-def main(args: Optional[list] = None) -> int:
-    return run_node(FrontendNode, args)
+def main(args: Optional[list[str]] = None) -> int:
+    return FrontendNode.main(args)
 
 
 if __name__ == "__main__":

@@ -1,14 +1,18 @@
 """The launcher behind ``vings launch``: starts the node graph as processes, watches them, stops
 them cleanly.
 
-Order: mapper first (it may resume from a checkpoint), then the front end, then the recorder. A
-node that exits on its own is reported and the rest of the graph is stopped (exit code 1). Ctrl-C /
-SIGTERM stops the front end first (it flushes its last keyframes), then the mapper (it finishes its
-queue and writes its checkpoint), then the recorder (it closes the MCAP). Fast DDS shared-memory
-files left by the graph's processes are removed at the end.
+The nodes are the registry's (vings_ros/registry.py): those with ``launch=ALWAYS`` unless
+``LaunchOptions.nodes`` names others, plus the recorder with ``record``. They start in the reverse
+of the registry order (mapper first: it may resume from a checkpoint; then the front end) and stop
+in the registry order on Ctrl-C / SIGTERM / SIGHUP: the front end first (it flushes its last
+keyframes), then the mapper (it finishes its queue and writes its checkpoint), then the recorder
+(it closes the MCAP). A node that exits on its own is reported and the rest of the graph is
+stopped (exit code 1). Fast DDS shared-memory files left by the graph's processes are removed at
+the end.
 """
 from __future__ import annotations
 
+import enum
 import os
 import signal
 import subprocess
@@ -18,19 +22,24 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Optional, TextIO
 
-from vings_core.config import config_from_dict
 from vings_core.errors import ConfigError
 from vings_core.util import check_output_file
 
-from .node_common import NodeConfig, check_parameters
+from . import registry
+from .node_common import check_parameters, section_classes, section_config
 from .ros_env import cleanup_fastdds_shm, ros_environment, shm_snapshot
 
-NODES = {"frontend_node": "vings_ros.frontend_node", "mapper_node": "vings_ros.mapper_node",
-         "recorder_node": "vings_ros.recorder"}
-#: seconds each node gets to stop after SIGINT before it is killed (the mapper: at least its
-#: ``ros.shutdown_timeout_s`` to finish queued keyframes, plus MAPPER_SAVE_MARGIN_S to save)
-STOP_TIMEOUT_S = {"frontend_node": 20.0, "mapper_node": 180.0, "recorder_node": 20.0}
-MAPPER_SAVE_MARGIN_S = 60.0
+#: the node ``--record`` starts (its one argument: the output file)
+RECORDER = "recorder_node"
+#: a node whose settings have ``shutdown_timeout_s`` (the mapper: time to finish queued keyframes)
+#: gets that plus SAVE_MARGIN_S (to write its checkpoint) before it is killed, at least its
+#: registry ``stop_timeout_s``
+SAVE_MARGIN_S = 60.0
+
+
+def default_nodes() -> tuple[str, ...]:
+    """The nodes ``vings launch`` starts without options (``launch=ALWAYS`` in the registry)."""
+    return tuple(n.name for n in registry.NODES if n.launch is registry.Launch.ALWAYS)
 
 
 @dataclass
@@ -40,14 +49,14 @@ class LaunchOptions:
     use_sim_time: bool = False
     domain_id: Optional[int] = None
     checkpoint: Optional[str] = None
-    nodes: tuple = ("mapper_node", "frontend_node")
+    nodes: Optional[tuple] = None          # registry node names (None: default_nodes())
     extra_params: dict = field(default_factory=dict)   # "section.key" -> value (ROS -p overrides)
     log_dir: Optional[str] = None
 
 
 def node_command(name: str, opt: LaunchOptions, extra: Optional[list] = None) -> list[str]:
     """The command line of one node process (``python -m module [args] --ros-args ...``)."""
-    cmd = [sys.executable, "-m", NODES[name]] + list(extra or []) + ["--ros-args"]
+    cmd = [sys.executable, "-m", registry.node_spec(name).module] + list(extra or []) + ["--ros-args"]
     if opt.params_file:
         cmd += ["--params-file", str(opt.params_file)]
     if opt.use_sim_time:
@@ -60,6 +69,8 @@ def node_command(name: str, opt: LaunchOptions, extra: Optional[list] = None) ->
 def _ros_value(v) -> str:
     if isinstance(v, bool):
         return "true" if v else "false"
+    if isinstance(v, enum.Enum):
+        return str(v.value)
     return str(v)
 
 
@@ -69,13 +80,30 @@ class Launcher:
         self.out = out or sys.stderr
         self.procs: dict[str, subprocess.Popen] = {}
         self._stopping = False
+        if opt.checkpoint:
+            opt.extra_params.setdefault("mapper_node.checkpoint_path", str(Path(opt.checkpoint).resolve()))
+        names = list(default_nodes() if opt.nodes is None else opt.nodes)
+        if opt.record and RECORDER not in names:
+            names.append(RECORDER)
+        for name in names:
+            registry.node_spec(name)    # a KeyError naming the known nodes
+        order = [n.name for n in registry.NODES]
+        #: the nodes in stop order (the registry's); they start in the reverse order
+        self.nodes = sorted(names, key=order.index)
         # every section as the nodes will see it (params file, then -p), checked before any node
-        # starts; the ros section's shutdown_timeout_s sets how long the mapper may take to stop
+        # starts; a node's shutdown_timeout_s sets how long it may take to stop
         sections = check_parameters([opt.params_file] if opt.params_file else [],
                                     {k: _ros_value(v) for k, v in opt.extra_params.items()}, "vings launch")
-        ncfg = config_from_dict(NodeConfig, sections["ros"], "vings launch: ros")
-        self.stop_timeout = {**STOP_TIMEOUT_S, "mapper_node": max(
-            STOP_TIMEOUT_S["mapper_node"], ncfg.shutdown_timeout_s + MAPPER_SAVE_MARGIN_S)}
+        classes = section_classes()
+        self.stop_timeout: dict[str, float] = {}
+        for spec in registry.NODES:
+            timeout = spec.stop_timeout_s
+            if spec.config:
+                cfg = section_config(classes[spec.name], spec.name, sections[spec.name], "vings launch")
+                work = getattr(cfg, "shutdown_timeout_s", None)
+                if work is not None:
+                    timeout = max(timeout, work + SAVE_MARGIN_S)
+            self.stop_timeout[spec.name] = timeout
         if opt.record and not str(opt.record).endswith(".mcap"):
             raise ConfigError(f"--record {opt.record}: the output must be a .mcap file")
         if opt.record:      # before any node starts, not when the recorder dies
@@ -83,8 +111,6 @@ class Launcher:
         if opt.record and Path(opt.record).exists():
             raise ConfigError(f"--record {opt.record}: the file exists; recordings are never "
                               f"overwritten, choose a new name")
-        if opt.checkpoint:
-            opt.extra_params.setdefault("ros.checkpoint_path", str(Path(opt.checkpoint).resolve()))
         self.env = ros_environment(opt.domain_id, log_dir=opt.log_dir)
 
     def _say(self, text: str) -> None:
@@ -92,14 +118,10 @@ class Launcher:
 
     def start(self) -> None:
         self.snapshot = shm_snapshot()
-        names = list(self.opt.nodes) + (["recorder_node"] if self.opt.record else [])
-        for name in names:
-            extra = [str(Path(self.opt.record).resolve())] if name == "recorder_node" else []
-            cmd = node_command(name, self.opt, extra)
-            if name == "recorder_node":  # the recorder takes no stage parameters
-                cmd = [sys.executable, "-m", NODES[name]] + extra + ["--ros-args"] + \
-                    (["-p", "use_sim_time:=true"] if self.opt.use_sim_time else [])
-            self.procs[name] = subprocess.Popen(cmd, env=self.env, start_new_session=True)
+        for name in reversed(self.nodes):
+            extra = [str(Path(self.opt.record).resolve())] if name == RECORDER else []
+            self.procs[name] = subprocess.Popen(node_command(name, self.opt, extra), env=self.env,
+                                                start_new_session=True)
             self._say(f"started {name} (pid {self.procs[name].pid})")
 
     def poll(self) -> Optional[str]:
@@ -110,11 +132,12 @@ class Launcher:
         return None
 
     def stop(self) -> None:
-        """Stop in order: front end, mapper, recorder; SIGINT, then SIGKILL after the timeout."""
+        """Stop in the registry order (front end, mapper, recorder); SIGINT, then SIGKILL after
+        the node's timeout."""
         if self._stopping:
             return
         self._stopping = True
-        for name in ("frontend_node", "mapper_node", "recorder_node"):
+        for name in self.nodes:
             p = self.procs.get(name)
             if p is None or p.poll() is not None:
                 continue
@@ -155,7 +178,7 @@ class Launcher:
                 if dead is not None:
                     rc = self.procs[dead].returncode
                     self._say(f"{dead} exited with code {rc}; stopping the graph")
-                    if dead == "recorder_node":
+                    if dead == RECORDER:
                         self._report_stranded_recording()
                     code = 1
                     break

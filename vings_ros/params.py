@@ -1,8 +1,10 @@
 """Where the shipped params file is, in a source checkout, a pip install or a ROS 2 install."""
 from __future__ import annotations
 
+import enum
 import sys
 from pathlib import Path
+from typing import Any
 
 PARAMS_NAME = "vings.yaml"
 
@@ -25,19 +27,31 @@ def default_params_file() -> Path:
 
 
 def default_sections() -> dict:
-    """Every stage's defaults, as the params file's sections (``ros``, ``frontend``, ``mapping``,
-    ``run``)."""
+    """Every section's defaults, as the params file holds them: ``ros``, one per node with
+    settings (``frontend_node``, ``mapper_node``), the library stages (``frontend``, ``mapping``,
+    ``run``, ``exchange``, ...). Enum values are their plain strings; a field whose default is an
+    empty list is left out (a ROS 2 parameter cannot hold ``[]``)."""
     import dataclasses
 
     from .node_common import section_classes
-    return {name: dataclasses.asdict(cls()) for name, cls in section_classes().items()}
+    return {name: {k: _plain(v) for k, v in dataclasses.asdict(cls()).items() if v != []}
+            for name, cls in section_classes().items()}
+
+
+def _plain(v: Any) -> Any:
+    """A value as YAML / ROS parameters hold it (an Enum member as its value)."""
+    if isinstance(v, enum.Enum):
+        return v.value
+    if isinstance(v, (list, tuple)):
+        return [_plain(x) for x in v]
+    return v
 
 
 def format_params_file(sections: dict) -> str:
     """A ROS 2 params YAML applying ``sections`` to every node (``/**``)."""
     import yaml
-    head = ("# VINGS-ROS parameters: read by frontend_node / mapper_node (--ros-args --params-file)\n"
-            "# and by `vings run --params`. One section per stage; see docs/ros.md and the config\n"
-            "# dataclasses (vings_core/*/config.py, vings_core/pipeline.py RunConfig,\n"
-            "# vings_ros/node_common.py NodeConfig) for units and meanings.\n")
+    head = ("# VINGS-ROS parameters: read by every node of the graph (--ros-args --params-file) and by\n"
+            "# `vings run --params`. Section ros: shared by the nodes; one section per node (its name);\n"
+            "# one per library stage. Units and meanings: docs/ros.md and the config dataclasses\n"
+            "# (vings_ros/node_config.py, vings_core/*/config.py, vings_core/pipeline.py RunConfig).\n")
     return head + yaml.safe_dump({"/**": {"ros__parameters": sections}}, sort_keys=False)

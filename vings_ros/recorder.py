@@ -8,19 +8,17 @@ from __future__ import annotations
 
 import os
 import shutil
-import sys
 import tempfile
 import threading
 from pathlib import Path
 from typing import Optional
 
-from rclpy.node import Node
-
 from msg_adapters import topics as T
-from vings_core.errors import VingsError
+from vings_core.errors import ConfigError, VingsError
 from vings_core.util import fsync_path
 
-from .node_common import run_node
+from . import registry
+from .node_base import StageNode
 
 #: (topic, ROS 2 type name, durability-latched?) of everything the graph publishes
 OUTPUT_TOPICS = [
@@ -49,14 +47,19 @@ def _msg_class(type_name: str):
     return getattr(mod, name)
 
 
-class RecorderNode(Node):
+class RecorderNode(StageNode):
+    spec = registry.node_spec("recorder_node")
+
     def __init__(self, out_path: str) -> None:
-        super().__init__("recorder_node")
+        self.out = Path(out_path).resolve()
+        self._out_arg = out_path
+        super().__init__()
+
+    def setup(self) -> None:
         from rosbags.rosbag2 import StoragePlugin, Writer
         from rosbags.typesys import Stores, get_typestore
 
-        self.error: Optional[BaseException] = None
-        self.out = Path(out_path).resolve()
+        out_path = self._out_arg
         if self.out.suffix != ".mcap":
             raise ValueError(f"--record {out_path}: the output must be a .mcap file")
         if self.out.exists():
@@ -74,7 +77,15 @@ class RecorderNode(Node):
             qos = T.latched_qos(1) if latched else T.sensor_qos(100)
             self.create_subscription(_msg_class(type_name), topic,
                                      lambda data, c=conn, t=topic: self._write(c, t, data), qos, raw=True)
-        self.get_logger().info(f"recording {len(OUTPUT_TOPICS)} topics to {self.out}")
+
+    def ready_message(self) -> str:
+        return f"recording {len(OUTPUT_TOPICS)} topics to {self.out}"
+
+    @classmethod
+    def from_args(cls, args: list[str]) -> "RecorderNode":
+        if len(args) != 1:
+            raise ConfigError("usage: recorder_node OUT.mcap [--ros-args ...]")
+        return cls(args[0])
 
     def _write(self, conn, topic: str, data: bytes) -> None:
         stamp = self.get_clock().now().nanoseconds
@@ -89,7 +100,8 @@ class RecorderNode(Node):
                 return
             self.counts[topic] = self.counts.get(topic, 0) + 1
 
-    def shutdown(self) -> None:
+    def close(self) -> None:
+        """Close the bag and move its ``.mcap`` onto the target (after the inputs stopped)."""
         part = self.bagdir / f"{self.bagdir.name}.mcap"
         with self.lock:
             try:
@@ -110,14 +122,8 @@ class RecorderNode(Node):
         self.get_logger().info(f"recorded {total} messages on {len(self.counts)} topics to {self.out}")
 
 
-def main(args: Optional[list] = None) -> int:
-    argv = list(sys.argv if args is None else args)
-    ros_start = argv.index("--ros-args") if "--ros-args" in argv else len(argv)
-    plain = argv[1:ros_start]
-    if len(plain) != 1:
-        print("usage: recorder_node OUT.mcap [--ros-args ...]", file=sys.stderr)
-        return 2
-    return run_node(lambda: RecorderNode(plain[0]), argv)
+def main(args: Optional[list[str]] = None) -> int:
+    return RecorderNode.main(args)
 
 
 if __name__ == "__main__":

@@ -19,19 +19,19 @@ def register(subparsers) -> None:
     p.add_argument("--domain-id", type=int, default=None, help="ROS_DOMAIN_ID for the graph")
     p.add_argument("--checkpoint", metavar="FILE",
                    help="mapper checkpoint: resumed from at start if it exists, written periodically "
-                        "and on shutdown (overrides ros.checkpoint_path)")
-    p.add_argument("--no-mapper", action="store_true", help="start only the front end")
+                        "and on shutdown (overrides mapper_node.checkpoint_path)")
+    p.add_argument("--no-mapper", action="store_true", help="leave the mapper out (front end alone)")
     p.add_argument("--backpressure", action="store_true",
                    help="front end queue policy 'backpressure' (use with `vings replay --wait-for-graph`)")
     p.add_argument("-p", "--param", action="append", default=[], metavar="SECTION.KEY=VALUE",
-                   help="override one parameter of both nodes, e.g. -p mapping.iters_per_keyframe=20")
+                   help="override one parameter of every node, e.g. -p mapping.iters_per_keyframe=20")
     p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
     from vings_core.errors import ConfigError
 
-    from ..launch import Launcher, LaunchOptions
+    from ..launch import Launcher, LaunchOptions, default_nodes
     from ..params import default_params_file
 
     extra = {}
@@ -41,9 +41,9 @@ def run(args: argparse.Namespace) -> int:
             raise ConfigError(f"-p {item!r}: expected SECTION.KEY=VALUE")
         extra[key] = val
     if args.backpressure:
-        extra["ros.queue_policy"] = "backpressure"
+        extra["frontend_node.queue_policy"] = "backpressure"
+    nodes = tuple(n for n in default_nodes() if n != "mapper_node") if args.no_mapper else None
     opt = LaunchOptions(params_file=args.params or str(default_params_file()), record=args.record,
                         use_sim_time=args.use_sim_time, domain_id=args.domain_id,
-                        checkpoint=args.checkpoint, extra_params=extra,
-                        nodes=("frontend_node",) if args.no_mapper else ("mapper_node", "frontend_node"))
+                        checkpoint=args.checkpoint, extra_params=extra, nodes=nodes)
     return Launcher(opt).run()

@@ -28,23 +28,23 @@ def register(subparsers) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from vings_core.config import ConfigError, load_section
+    from vings_core.config import ConfigError, params_layout
     from vings_core.pipeline import RunConfig, SlamRunner, open_working_source
+
+    from ..node_common import check_params_file, graph_layout
 
     if not str(args.out).strip():
         raise ConfigError("--out: give an output folder (an empty path would write into the current folder)")
-    cfg = load_section(RunConfig, "run", args.params)
-    if args.params:     # every section (the nodes' too) before any work: a typo fails at once
-        from vings_ros.node_common import section_classes
-        for section, cls in section_classes().items():
-            load_section(cls, section, args.params)
+    # every section (the nodes' too) before any work: a typo fails at once
+    cfg = check_params_file(args.params)["run"] if args.params else RunConfig()
     cfg.sync = cfg.sync or args.sync
     cfg.gt_poses = cfg.gt_poses or args.gt_poses
     source = open_working_source(args.source, source_options(args), cfg.width, cfg.height)
     for w in source.warnings:
         print(f"vings run: warning: {w}", file=sys.stderr)
-    runner = SlamRunner(source, args.out, params_file=args.params, run_cfg=cfg,
-                        progress=not args.no_progress)
+    with params_layout(graph_layout()):     # the runner reads the stages' sections of the graph's file
+        runner = SlamRunner(source, args.out, params_file=args.params, run_cfg=cfg,
+                            progress=not args.no_progress)
     metrics = runner.run()
     print(f"outputs in {runner.out.out_dir}: trajectory.tum keyframes.tum map.ply checkpoint.pt "
           f"metrics.json renders/")

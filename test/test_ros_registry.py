@@ -1,0 +1,161 @@
+"""The node registry (vings_ros/registry.py) is the one list of nodes: setup.py's console scripts,
+launch/vings.launch.py, `vings launch` and the params sections all follow it."""
+from __future__ import annotations
+
+import importlib
+import os
+import runpy
+import signal
+import subprocess
+import sys
+import time
+import types
+from pathlib import Path
+
+import pytest
+import yaml
+
+from vings_core.errors import ConfigError
+from vings_ros import registry
+from vings_ros.registry import Launch, NodeSpec
+
+REPO = Path(__file__).resolve().parents[1]
+
+#: an extra node with settings (the checkpoint ones), placed between the front end and the mapper
+EXTRA = NodeSpec("extra_node", "stand_in_extra_node", "vings_ros.node_config:CheckpointSettings",
+                 reads=("mapping",), stop_timeout_s=7.0)
+
+
+def _with_extra() -> tuple[NodeSpec, ...]:
+    fe, *rest = registry.NODES
+    return (fe, EXTRA, *rest)
+
+
+def _setup_py_kwargs() -> dict:
+    import setuptools
+    got: dict = {}
+    real = setuptools.setup
+    setuptools.setup = lambda **kw: got.update(kw)
+    try:
+        runpy.run_path(str(REPO / "setup.py"))
+    finally:
+        setuptools.setup = real
+    return got
+
+
+def _launch_file_nodes(monkeypatch) -> list[str]:
+    """launch/vings.launch.py with stand-ins for launch / launch_ros / ament_index (not available as
+    wheels): the executables of its Node actions, in order."""
+    class Action:
+        def __init__(self, *args, **kw):
+            self.args, self.kw = args, kw
+
+    class Node(Action):
+        pass
+
+    fake = {
+        "launch": types.SimpleNamespace(LaunchDescription=lambda actions: list(actions)),
+        "launch.actions": types.SimpleNamespace(DeclareLaunchArgument=Action, SetEnvironmentVariable=Action),
+        "launch.substitutions": types.SimpleNamespace(LaunchConfiguration=Action),
+        "launch_ros": types.SimpleNamespace(),
+        "launch_ros.actions": types.SimpleNamespace(Node=Node),
+        "ament_index_python": types.SimpleNamespace(),
+        "ament_index_python.packages": types.SimpleNamespace(get_package_share_directory=lambda p: f"/share/{p}"),
+    }
+    for name, mod in fake.items():
+        monkeypatch.setitem(sys.modules, name, mod)
+    ns = runpy.run_path(str(REPO / "launch" / "vings.launch.py"))
+    actions = ns["generate_launch_description"]()
+    nodes = [a for a in actions if isinstance(a, Node)]
+    assert all(a.kw["name"] == a.kw["executable"] for a in nodes)
+    return [a.kw["executable"] for a in nodes]
+
+
+def test_every_registry_node_has_a_console_script_and_a_launch_entry(monkeypatch):
+    pytest.importorskip("rclpy")
+    scripts = _setup_py_kwargs()["entry_points"]["console_scripts"]
+    for spec in registry.NODES:
+        assert f"{spec.name} = {spec.module}:main" in scripts, spec.name
+        assert callable(importlib.import_module(spec.module).main), spec.module
+    assert "vings = vings_ros.cli:main" in scripts
+    # the launch file starts what `vings launch` starts by default, in the same order
+    from vings_ros.launch import default_nodes
+    assert _launch_file_nodes(monkeypatch) == list(reversed(default_nodes())) == ["mapper_node", "frontend_node"]
+
+
+def test_an_extra_registry_entry_is_listed_everywhere_without_editing_them(monkeypatch, tmp_path):
+    from vings_ros.launch import Launcher, LaunchOptions, default_nodes, node_command
+    from vings_ros.node_common import check_parameters, graph_layout, param_rules
+    from vings_ros.params import default_sections
+    monkeypatch.setattr(registry, "NODES", _with_extra())
+    assert default_nodes() == ("frontend_node", "extra_node", "mapper_node")
+    assert _launch_file_nodes(monkeypatch) == ["mapper_node", "extra_node", "frontend_node"]
+    assert "extra_node = stand_in_extra_node:main" in registry.console_scripts()
+    # its settings section is part of the params layout, the defaults dump and the checks
+    assert "extra_node" in graph_layout().sections and "extra_node" in graph_layout().nodes
+    assert default_sections()["extra_node"] == {"checkpoint_path": "", "resume": True, "checkpoint_period_s": 30.0}
+    assert check_parameters(*param_rules(["n", "--ros-args", "-p", "extra_node.checkpoint_period_s:=5.0"]),
+                            "n")["extra_node"] == {"checkpoint_period_s": 5.0}
+    with pytest.raises(ConfigError, match="n: extra_node: unknown parameter 'bogus'"):
+        check_parameters(*param_rules(["n", "--ros-args", "-p", "extra_node.bogus:=1"]), "n")
+    p = tmp_path / "p.yaml"
+    p.write_text(yaml.safe_dump({"extra_node": {"ros__parameters": {"extra_node": {"resume": False}}}}))
+    launcher = Launcher(LaunchOptions(params_file=str(p)))
+    assert launcher.nodes == ["frontend_node", "extra_node", "mapper_node"]
+    assert launcher.stop_timeout["extra_node"] == 7.0
+    assert node_command("extra_node", launcher.opt)[:3] == [sys.executable, "-m", "stand_in_extra_node"]
+    # an on-request node is left out unless asked for
+    monkeypatch.setattr(registry, "NODES", (*_with_extra(), NodeSpec("later_node", "m", launch=Launch.ON_REQUEST)))
+    assert "later_node" not in default_nodes()
+
+
+STAND_IN_NODE = """
+import signal, sys, time
+from pathlib import Path
+log = Path(sys.argv[1])
+def stop(sig, frame):
+    with log.open("a") as f:
+        f.write(f"{time.monotonic():.6f} got {sig}\\n")
+    sys.exit(0)
+signal.signal(signal.SIGINT, stop)
+signal.signal(signal.SIGTERM, stop)
+log.write_text(f"{time.monotonic():.6f} started\\n")
+while True:
+    time.sleep(0.05)
+"""
+
+LAUNCH_CHILD = """
+import dataclasses
+from vings_ros import launch as L, registry
+from vings_ros.registry import NodeSpec
+fe, *rest = registry.NODES
+nodes = (fe, NodeSpec("extra_node", "stand_in_extra_node"), *rest)
+registry.NODES = tuple(dataclasses.replace(n, module=f"stand_in_{n.name}") for n in nodes)
+print("rc", L.Launcher(L.LaunchOptions()).run(), flush=True)
+"""
+
+
+def test_vings_launch_starts_and_stops_an_extra_registry_node_in_order(tmp_path):
+    """A node added to the registry (between front end and mapper) is started by the launcher
+    (consumers first) and stopped after the front end, before the mapper."""
+    names = ("frontend_node", "extra_node", "mapper_node")
+    (tmp_path / "stand_in.py").write_text(STAND_IN_NODE)
+    for name in names:
+        (tmp_path / f"stand_in_{name}.py").write_text(
+            f"import runpy, sys\nsys.argv[1:] = [{str(tmp_path / (name + '.log'))!r}]\n"
+            f"runpy.run_path({str(tmp_path / 'stand_in.py')!r}, run_name='__main__')\n")
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(tmp_path), str(REPO)]))
+    p = subprocess.Popen([sys.executable, "-c", LAUNCH_CHILD], env=env, stdout=subprocess.PIPE,
+                         stderr=subprocess.PIPE, text=True, start_new_session=True)
+    logs = [tmp_path / f"{n}.log" for n in names]
+    t_end = time.monotonic() + 60
+    while not all(f.exists() for f in logs) and time.monotonic() < t_end:
+        time.sleep(0.1)
+    time.sleep(0.3)
+    p.send_signal(signal.SIGINT)
+    out, err = p.communicate(timeout=60)
+    assert "rc 0" in out, err
+    started = [err.find(f"started {name} ") for name in names]
+    assert min(started) >= 0 and started[2] < started[1] < started[0], f"consumers start first:\n{err}"
+    stopped = [float(f.read_text().splitlines()[-1].split()[0]) for f in logs]
+    assert stopped[0] < stopped[1] < stopped[2], "stopped in the registry order"

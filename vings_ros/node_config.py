@@ -1,0 +1,138 @@
+"""Settings of the nodes: the shared section ``ros`` and one section per node (named after it).
+
+Plain dataclasses without rclpy, so ``vings run --params`` and ``vings launch`` check every section
+of a params file without starting ROS. The library stages' sections (``frontend``, ``mapping``,
+``run``, ...) are vings_core's (vings_core.config.LIBRARY_SECTIONS).
+"""
+from __future__ import annotations
+
+import enum
+from dataclasses import dataclass
+
+
+class QueuePolicy(str, enum.Enum):
+    """Input queue of a node (vings_ros.node_common.InputQueue).
+
+    ``keep_newest`` (live): the worker takes the newest waiting input, older ones are dropped and
+    counted. ``backpressure`` (replay with ``--wait-for-graph``): nothing is dropped; the queue
+    holds up to ``queue_size`` items and the replay waits for acknowledgements."""
+
+    KEEP_NEWEST = "keep_newest"
+    BACKPRESSURE = "backpressure"
+
+
+def _check_frame(name: str, value: str) -> None:
+    if not value.strip() or value.startswith("/"):
+        raise ValueError(f"{name} must be a frame id without a leading '/', got {value!r}")
+
+
+@dataclass
+class RosConfig:
+    """Settings every node shares (params section ``ros``): the frame ids of its outputs and the
+    /diagnostics period."""
+
+    world_frame: str = "map"
+    camera_frame: str = "camera_optical_frame"
+    diagnostics_period_s: float = 1.0
+
+    def validate(self) -> None:
+        if not self.diagnostics_period_s > 0:
+            raise ValueError(f"diagnostics_period_s must be > 0, got {self.diagnostics_period_s}")
+        _check_frame("world_frame", self.world_frame)
+        _check_frame("camera_frame", self.camera_frame)
+
+
+@dataclass
+class FrontendNodeConfig:
+    """``frontend_node`` settings (params section ``frontend_node``).
+
+    ``queue_policy`` / ``queue_size``: the image queue (:class:`QueuePolicy`; ``keep_newest`` holds
+    one image). ``calib_file``: calibration YAML used instead of the camera_info topic.
+    ``calib_wait_s``: how long an image that arrived before any calibration is held.
+    ``width``/``height``: working resolution the images are resized/undistorted to (0 = as
+    published). ``path_max_poses``: poses in /vings/path."""
+
+    queue_policy: QueuePolicy = QueuePolicy.KEEP_NEWEST
+    queue_size: int = 64
+    calib_file: str = ""
+    calib_wait_s: float = 2.0
+    width: int = 0
+    height: int = 0
+    path_max_poses: int = 10000
+
+    def validate(self) -> None:
+        if self.queue_size < 1:
+            raise ValueError("queue_size must be >= 1")
+        if self.width < 0 or self.height < 0:
+            raise ValueError("width/height must be >= 0")
+        if self.calib_wait_s < 0:
+            raise ValueError("calib_wait_s must be >= 0")
+        if self.path_max_poses < 1:
+            raise ValueError("path_max_poses must be >= 1")
+
+
+@dataclass
+class CheckpointSettings:
+    """Checkpointing of a node's state (vings_ros.node_base.StageNode checkpoint hooks).
+
+    ``checkpoint_path``: the checkpoint file ("" = none); ``resume``: load it at start if it
+    exists. It is written (atomically) on shutdown, whenever ``checkpoint_period_s`` seconds
+    passed since the last one and the state changed (0 = no periodic checkpoint), and when the
+    node asks for one."""
+
+    checkpoint_path: str = ""
+    resume: bool = True
+    checkpoint_period_s: float = 30.0
+
+    def validate(self) -> None:
+        if self.checkpoint_period_s < 0:
+            raise ValueError("checkpoint_period_s must be >= 0")
+
+
+@dataclass
+class MapperNodeConfig(CheckpointSettings):
+    """``mapper_node`` settings (params section ``mapper_node``), besides the checkpoint ones
+    (:class:`CheckpointSettings`).
+
+    The mapper also checkpoints after its first keyframe and every ``checkpoint_every_keyframes``
+    keyframes (0 = off). ``shutdown_timeout_s``: how long it may work through queued keyframes
+    after SIGINT. ``nice``: niceness the mapper process adds to itself, so tracking wins the CPU
+    (0 = off); ``threads``: torch / numba threads (0 = library default). ``points_period_s``:
+    throttle of /vings/map/points, ``max_points`` its size. ``render_every_keyframes``: publish
+    renders after every n-th keyframe (0 = never)."""
+
+    checkpoint_every_keyframes: int = 5
+    shutdown_timeout_s: float = 120.0
+    nice: int = 10
+    threads: int = 0
+    points_period_s: float = 2.0
+    max_points: int = 200000
+    render_every_keyframes: int = 1
+
+    def validate(self) -> None:
+        super().validate()
+        if self.checkpoint_every_keyframes < 0:
+            raise ValueError("checkpoint_every_keyframes must be >= 0")
+        if not 0 <= self.nice <= 19:
+            raise ValueError(f"nice must be in 0..19, got {self.nice}")
+        if self.threads < 0:
+            raise ValueError("threads must be >= 0")
+        if self.shutdown_timeout_s < 0:
+            raise ValueError("shutdown_timeout_s must be >= 0")
+        if self.points_period_s < 0:
+            raise ValueError("points_period_s must be >= 0")
+        if self.max_points < 0 or self.render_every_keyframes < 0:
+            raise ValueError("max_points and render_every_keyframes must be >= 0")
+
+
+#: ``ros.<key>`` names of node settings that live in a node's own section: a params file or ``-p``
+#: that uses one gets an error naming the section's key instead of "unknown parameter"
+MOVED_PARAMETERS = {
+    **{f"ros.{k}": f"frontend_node.{k}" for k in ("queue_policy", "queue_size", "calib_file",
+                                                   "calib_wait_s", "width", "height", "path_max_poses")},
+    **{f"ros.{k}": f"mapper_node.{k}" for k in ("checkpoint_path", "resume", "checkpoint_period_s",
+                                                 "checkpoint_every_keyframes", "shutdown_timeout_s",
+                                                 "points_period_s", "max_points", "render_every_keyframes")},
+    "ros.mapper_nice": "mapper_node.nice",
+    "ros.mapper_threads": "mapper_node.threads",
+}
