@@ -33,9 +33,8 @@ from vings_core.exchange import IncrementBatch
 from vings_core.geometry import np_quat_to_rotmat, np_rotmat_to_quat, sim3, sim3_scale
 
 from .stamps import header_ns, make_header
-from .topics import WORLD_FRAME
+from .topics import EXCHANGE_TOPIC_PREFIX, WORLD_FRAME
 
-EXCHANGE_TOPIC_PREFIX = "/vings/exchange/"
 ACK_PREFIX = "ack:"
 
 

@@ -38,13 +38,9 @@ RENDER_DEPTH_TOPIC = "/vings/render/depth"
 RENDER_NORMAL_TOPIC = "/vings/render/normal"
 MAP_POINTS_TOPIC = "/vings/map/points"
 REFINED_KEYFRAMES_TOPIC = "/vings/keyframes/refined"
-#: nav_msgs/Path of pose *increments* from the mapper's refinement: pose i is the world-frame
-#: correction ``C`` (``T_new = C T_old``) of the keyframe stamped in its header. The front end
-#: applies the ones its write-back policy accepts (vings_core.pipeline.FrontendPoseLink).
-KEYFRAME_CORRECTIONS_TOPIC = "/vings/keyframes/corrections"
-#: nav_msgs/Path of front-end keyframe poses (absolute ``T_wc``) that changed since they were last
-#: exchanged (window BA); the mapper applies them as increments (MapperPoseLink).
-FRONTEND_KEYFRAMES_TOPIC = "/vings/frontend/keyframes"
+#: pose-exchange batches of stage ``<source>`` (nav_msgs/Path, wire format in msg_adapters/exchange.py):
+#: ``EXCHANGE_TOPIC_PREFIX + source``; the front end's are ``/vings/exchange/frontend``
+EXCHANGE_TOPIC_PREFIX = "/vings/exchange/"
 MARKERS_TOPIC = "/vings/markers"
 DIAGNOSTICS_TOPIC = "/diagnostics"
 

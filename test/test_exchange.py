@@ -257,3 +257,71 @@ def test_batch_check_refuses_malformed_increments():
         IncrementBatch("mapper", 1, {1: bad}).check("t")
     with pytest.raises(InputError, match="finite"):
         IncrementBatch("mapper", 1, {1: np.full((4, 4), np.nan)}).check("t")
+
+
+def _one_window_system(fe: DictOwner, stamp: int, sigma: float):
+    """A BA window of one keyframe whose pose information is ``1 / sigma^2`` per tangent axis."""
+    import torch
+
+    from vings_core.frontend.ba import PoseSystem
+    return PoseSystem([stamp], torch.from_numpy(np.linalg.inv(fe.pose(stamp)))[None],
+                      torch.eye(6, dtype=torch.float64) / sigma ** 2, torch.zeros(6, dtype=torch.float64))
+
+
+def _se3(rho, phi):
+    from vings_core.geometry import np_se3_exp
+    return np_se3_exp(np.asarray(list(rho) + list(phi), np.float64))
+
+
+def test_consistency_gate_uses_the_keepers_information():
+    """Increments within the keeper's pose uncertainty pass the chi-square test, large ones and
+    those of keyframes outside its BA window do not."""
+    from vings_core.exchange import correction_consistency
+    rng, keeper, followers, (fe, mp, _) = _graph(policies={"mapper": WritebackPolicy.CONSISTENT})
+    sigma = 0.01                                  # 1 cm / 10 mrad per axis
+    fe.pose_system = _one_window_system(fe, 2, sigma)
+    small = _se3([0.5 * sigma, 0, 0], [0, 0.5 * sigma, 0])
+    big = _se3([5 * sigma, 0, 0], [0, 0, 0])
+    ok, q, lim = correction_consistency(fe.pose_system, fe.pose, {2: small}, 0.99)
+    assert set(ok) == {2} and q < lim
+    ok, q, lim = correction_consistency(fe.pose_system, fe.pose, {2: big}, 0.99)
+    assert ok == {} and q > lim
+    ok, q, lim = correction_consistency(fe.pose_system, fe.pose, {1: small}, 0.99)   # not in the window
+    assert ok == {} and q is None
+    T2 = fe.pose(2)
+    mp.apply_increments({2: small})
+    assert set(keeper.receive(followers["mapper"].send({2: small}))) == {2}
+    np.testing.assert_allclose(fe.pose(2), small @ T2, atol=1e-12)
+
+
+def test_consistency_gate_counts_increments_accepted_since_the_ba():
+    """Many small increments, each within the keeper's noise, must not add up unchecked: the gate
+    measures the deviation from the BA's linearisation point, not each increment alone."""
+    rng, keeper, followers, (fe, mp, _) = _graph(policies={"mapper": WritebackPolicy.CONSISTENT})
+    sigma = 0.01
+    fe.pose_system = _one_window_system(fe, 2, sigma)
+    step = _se3([2.5 * sigma, 0, 0], [0, 0, 0])   # q = 6.25 < chi2(0.99, 6) = 16.8 alone
+    accepted = 0
+    for _ in range(6):
+        mp.apply_increments({2: step})
+        accepted += len(keeper.receive(followers["mapper"].send({2: step})))
+    assert accepted == 1                           # 2 steps: q = 25 > 16.8
+    followers["mapper"].receive(keeper.outgoing())   # the five refused ones are undone
+    np.testing.assert_allclose(mp.poses[2], fe.poses[2], atol=1e-9)
+
+
+def test_pose_written_before_the_keyframe_is_sent_reaches_the_follower():
+    """outgoing() runs before keyframe_sent() for a keyframe whose pose was written after its packet
+    was made: the write is not lost (the keeper compares every newly sent keyframe once)."""
+    T3 = _se3([2.0, 0, 0], [0, 0.2, 0])
+    fe, mp = DictOwner({3: T3}), DictOwner({3: T3})
+    keeper, fol = PoseKeeper(fe), PoseFollower("mapper", mp)
+    fe.move(3, _se3([0.1, 0, 0], [0, 0, 0]))       # moved after the packet (made at T3) was made
+    fe._written.clear()                            # ... and before the keeper compares writes
+    assert keeper.outgoing() is None               # not sent yet: nothing to compare
+    keeper.keyframe_sent(3, T3)
+    fol.keyframe_added(3, T3)
+    b = keeper.outgoing()
+    assert list(b.increments) == [3]
+    fol.receive(b)
+    np.testing.assert_allclose(mp.poses[3], fe.poses[3], atol=1e-12)

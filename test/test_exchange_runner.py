@@ -71,3 +71,23 @@ def test_vings_run_third_writer_correction_reaches_front_end_and_mapper(tmp_path
     first = min(kf)
     np.testing.assert_allclose(kf[first], G @ fixer.emitted[first], atol=1e-9)
     assert r.keeper.stats["applied"] >= len(fixer.fixed)
+
+
+def test_vings_run_ends_with_front_end_and_mapper_agreeing(tmp_path):
+    """With every mapper refinement applied, the front end's and the mapper's keyframe poses agree
+    at the end of `vings run`: each stage's moves reach the other, none is lost or undone."""
+    from vings_core.io import open_source
+    from vings_core.pipeline import RunConfig, SlamRunner
+    from vings_core.sim import generate
+
+    generate("room", tmp_path / "room", frames=24, width=192, height=128, seed=5, mcap=False)
+    p = tmp_path / "p.yaml"
+    p.write_text("/**:\n  ros__parameters:\n    mapping:\n      iters_per_keyframe: 2\n"
+                 "      points_per_keyframe: 1500\n      refine_iters: 2\n    exchange:\n      mapper: all\n")
+    r = SlamRunner(open_source(tmp_path / "room"), tmp_path / "out", str(p),
+                   RunConfig(sync=True, eval_keyframes=1, eval_novel=1, save_renders=0), progress=False)
+    m = r.run()
+    kf = r.mapper.keyframe_poses()
+    assert len(kf) >= 2 and m["frames_tracked"] >= 12
+    assert r.keeper.stats["applied"] > 0, "no refinement was exchanged"
+    assert max(np.abs(P - r.frontend.pose(s)).max() for s, P in kf.items()) < 1e-9

@@ -37,9 +37,9 @@ from .eval.traj import evaluate_trajectory
 from .exchange import ExchangeConfig, IncrementBatch, PoseFollower, PoseKeeper
 from .geometry import rotation_angle_deg
 from .io.base import Source, SourceOptions
+from .profiling import timed, timed_iter
 from .stages import MAPPER_SOURCE
-from .stages import map_keyframe as _map_step
-from .legacy_links import FrontendPoseLink, MapperPoseLink, PoseCorrections, PoseUpdates, map_keyframe  # noqa: F401  TEMPORARY
+from .stages import map_keyframe
 from .types import Frame, Keyframe, TrackState, Trajectory
 
 log = logging.getLogger("vings.run")
@@ -260,7 +260,7 @@ class SlamRunner:
     # --------------------------------------------------------------------------- mapping side
 
     def _map_keyframe(self, kf: Keyframe) -> None:
-        _, batch = _map_step(self.mapper, self.follower, kf, refine=self.frontend is not None,
+        _, batch = map_keyframe(self.mapper, self.follower, kf, refine=self.frontend is not None,
                              chunk=10, stop=lambda: self._abort)
         if batch is not None:
             with self._lock:
@@ -412,7 +412,7 @@ class SlamRunner:
         bar = _progress(n_total, self.progress)
         n_frames = 0
         try:
-            for frame in self.source.frames():
+            for frame in timed_iter(self.source.frames(), "io", "read frame"):
                 n_frames += 1
                 state = self._track_frame(frame, worker, frame.stamp_ns in keep_novel)
                 bar.update(1)
@@ -423,7 +423,8 @@ class SlamRunner:
             bar.close()
             self._finish_stages(worker)
             # everything slow (evaluation renders) happens before any output file is replaced
-            final = self._evaluate(n_frames)
+            with timed("evaluation", "renders and metrics"):
+                final = self._evaluate(n_frames)
         except BaseException as e:
             self._abort = True      # Ctrl-C or an input error: do not map the queued keyframes first
             bar.close()
@@ -432,7 +433,8 @@ class SlamRunner:
                 log.warning("the mapper had stopped too: %s", self._mapper_err)
             self._save_partial()
             raise
-        return self._write_final(final, t0)
+        with timed("io", "write outputs"):
+            return self._write_final(final, t0)
 
     def _track_frame(self, frame: Frame, worker: Optional[threading.Thread], keep_image: bool) -> TrackState:
         """One frame: take the writers' batches, track it (or take its ground-truth pose), send the

@@ -22,24 +22,23 @@ from msg_adapters.diagnostics import TRACKING_STATE_LEVEL
 from msg_adapters.image import FrameDecoder
 from msg_adapters.imu import msg_to_imu_sample
 from msg_adapters.keyframe import PART_TOPICS, keyframe_to_msgs
-from msg_adapters.pose import estimate_to_odometry, path_to_trajectory, trajectory_to_path
+from msg_adapters.exchange import batch_to_path, exchange_topic, path_to_batch
+from msg_adapters.pose import estimate_to_odometry, trajectory_to_path
 from msg_adapters.stamps import header_ns
 from vings_core.errors import InputError
 from vings_core.frontend import Frontend, FrontendConfig
 from vings_core.frontend.flow import make_flow_estimator
 from vings_core.io.calib_yaml import is_rectified_topic, load_calibration_yaml
 from vings_core.io.undistort import Undistorter
-from vings_core.pipeline import FrontendPoseLink, PoseCorrections, RunConfig
-from vings_core.types import CameraModel, Frame, Trajectory
+from vings_core.exchange import ExchangeConfig, IncrementBatch, PoseKeeper
+from vings_core.exchange.config import KEEPER
+from vings_core.types import CameraModel, Frame, TrackState
 
 from . import registry
 from .node_base import Level, NodeStatus, StageNode
 from .node_common import RateMeter, worth_reporting as _report
 from .node_config import FrontendNodeConfig, QueuePolicy
 
-#: front-end keyframe poses after later window BA moved them (nav_msgs/Path, each pose stamped with
-#: its keyframe stamp); the mapper applies them as increments (vings_core.pipeline.MapperPoseLink).
-FRONTEND_KEYFRAMES_TOPIC = T.FRONTEND_KEYFRAMES_TOPIC
 #: consecutive skipped images after which /diagnostics reports an error
 BAD_STREAK_ERROR = 5
 
@@ -53,8 +52,6 @@ class FrontendNode(StageNode):
 
     def setup(self) -> None:
         self.fcfg: FrontendConfig = self.config("frontend")
-        # the pose exchange's settings as `vings run` reads them (sections run, exchange)
-        self.rcfg: RunConfig = self.config("run")
         self.raw_camera: Optional[CameraModel] = None
         self.undist: Optional[Undistorter] = None
         self.frontend: Optional[Frontend] = None
@@ -150,6 +147,7 @@ class FrontendNode(StageNode):
         self.undist = Undistorter(raw, w, h, undistort=True)
         self.raw_camera = raw
         self.frontend = Frontend(self.fcfg, self.undist.camera, flow=self._flow)
+        self.keeper = PoseKeeper(self.frontend, self.xcfg)
         cam = self.undist.camera
         self._camera_ready.set()
         self.get_logger().info(f"camera {raw.width}x{raw.height} -> working {cam.width}x{cam.height}")
@@ -199,12 +197,12 @@ class FrontendNode(StageNode):
         self._exchange_receive()
         ests = self.frontend.process(frame)
         for est in ests:
-            if est.state == "tracking":
+            if est.state is TrackState.TRACKING:
                 self.pub_odom.publish(estimate_to_odometry(est, self.ros.world_frame,
                                                            self.ros.camera_frame, T.ODOMETRY_TOPIC))
         # as in `vings run`: moved keyframe poses first, then the new keyframes
         kfs = self.frontend.pop_keyframes()
-        self._exchange_send()
+        self._exchange_send(stamp)
         self._publish_keyframes(kfs)
         self.rate.tick()
         now = time.monotonic()
@@ -233,7 +231,7 @@ class FrontendNode(StageNode):
             self._exchange_keyframe_sent(kf)
 
     def _publish_path(self) -> None:
-        traj = self.frontend.trajectory(states=("tracking",), max_poses=self.settings.path_max_poses)
+        traj = self.frontend.trajectory(states=(TrackState.TRACKING,), max_poses=self.settings.path_max_poses)
         if len(traj) == 0:
             return
         self.pub_path.publish(trajectory_to_path(traj, self.ros.world_frame))
@@ -257,52 +255,52 @@ class FrontendNode(StageNode):
         return NodeStatus(Level(TRACKING_STATE_LEVEL[state]), st.get("reason") or state, values)
 
     # ----------------------------------------------------------------------- pose exchange
-    # The mapper's refinements in (corrections), moved front-end keyframe poses out, through
-    # vings_core.pipeline.FrontendPoseLink under the write-back policy of section run.
+    # The front end keeps the poses (vings_core.exchange.PoseKeeper): the writers' batches come in on
+    # /vings/exchange/<writer> and pass their write-back policy (section exchange); its own batch
+    # (window BA moves, accepted increments, acks) goes out on /vings/exchange/frontend.
 
     def _exchange_setup(self) -> None:
-        self._corrections: list[dict[int, np.ndarray]] = []
+        self.xcfg: ExchangeConfig = self.config("exchange")
+        self._incoming: list[IncrementBatch] = []
         self._lock = threading.Lock()
-        self.link = FrontendPoseLink(self.rcfg)
-        sq = T.sensor_qos
-        self.create_subscription(Path, T.KEYFRAME_CORRECTIONS_TOPIC, self._exchange_on_message,
-                                 sq(T.POSE_EXCHANGE_DEPTH))
-        self.pub_kf_path = self.create_publisher(Path, FRONTEND_KEYFRAMES_TOPIC, sq(T.POSE_EXCHANGE_DEPTH))
+        self.keeper: Optional[PoseKeeper] = None       # made with the front end (needs the camera)
+        qos = T.sensor_qos(T.POSE_EXCHANGE_DEPTH)
+        for writer in self.xcfg.writers():
+            self.create_subscription(Path, exchange_topic(writer),
+                                     lambda m, w=writer: self._exchange_on_message(w, m), qos)
+        self.pub_exchange = self.create_publisher(Path, exchange_topic(KEEPER), qos)
 
-    def _exchange_on_message(self, msg: Path) -> None:
+    def _exchange_on_message(self, writer: str, msg: Path) -> None:
         try:
-            traj = path_to_trajectory(msg, T.KEYFRAME_CORRECTIONS_TOPIC)
-            batch = header_ns(msg.header, T.KEYFRAME_CORRECTIONS_TOPIC)   # the correction batch number
+            batch = path_to_batch(msg, writer)
         except InputError as e:
-            self.get_logger().warning(f"ignored a malformed correction message: {e}")
+            self.get_logger().warning(f"ignored a malformed pose-exchange message: {e}")
             return
         with self._lock:
-            self._corrections.append(PoseCorrections(zip(traj.stamps_ns.tolist(), traj.poses), batch=batch))
+            self._incoming.append(batch)
 
     def _exchange_receive(self) -> None:
-        """The mapper's refinements received since the last frame -> write-back policy."""
+        """The writers' batches received since the last frame -> their write-back policies."""
         with self._lock:
-            pending, self._corrections = self._corrections, []
-        for corr in pending:
-            self.link.apply_corrections(self.frontend, corr)
+            pending, self._incoming = self._incoming, []
+        for batch in pending:
+            self.keeper.receive(batch)
 
-    def _exchange_send(self) -> None:
-        """Keyframes already sent whose pose changed since last exchanged: one Path of them."""
-        moved = self.link.outgoing(self.frontend)
-        if not moved:
-            return
-        # header stamp: the last correction batch processed (the mapper reads the poses against it)
-        self.pub_kf_path.publish(trajectory_to_path(Trajectory.from_poses(moved), self.ros.world_frame,
-                                                    stamp_ns=moved.ack))
+    def _exchange_send(self, seq_hint: int = 0) -> None:
+        """The keeper's batch since the last one, if anything moved or a writer's batch was processed."""
+        batch = self.keeper.outgoing(seq_hint)
+        if batch is not None:
+            self.pub_exchange.publish(batch_to_path(batch, self.ros.world_frame))
 
     def _exchange_keyframe_sent(self, kf) -> None:
-        self.link.keyframe_sent(kf)
+        self.keeper.keyframe_sent(kf.stamp_ns, kf.T_wc.detach().cpu().numpy().astype(np.float64))
 
     def _exchange_values(self) -> dict:
-        return {"writeback_policy": self.config("exchange").mapper,
-                "corrections_received": self.link.stats["corrections"],
-                "corrections_applied": self.link.stats["applied"],
-                "corrections_rejected": self.link.stats["rejected"]}
+        st = self.keeper.stats if self.keeper is not None else {}
+        return {"writeback_policy": self.xcfg.mapper,
+                "corrections_received": st.get("corrections", 0),
+                "corrections_applied": st.get("applied", 0),
+                "corrections_rejected": st.get("rejected", 0)}
 
     # -------------------------------------------------------------------------------- shutdown
 

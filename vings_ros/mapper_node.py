@@ -1,8 +1,8 @@
 """``mapper_node``: keyframe packets in; renders, map points, refined keyframe poses, markers out.
 
 It assembles the five keyframe parts by stamp (``msg_adapters.keyframe.KeyframeAssembler``) and
-runs :func:`vings_core.pipeline.map_keyframe` on :class:`vings_core.mapping.Mapper`, the step
-``vings run`` uses, with the same pose exchange (:class:`vings_core.pipeline.MapperPoseLink`). It
+runs :func:`vings_core.stages.map_keyframe` on :class:`vings_core.mapping.Mapper`, the step
+``vings run`` uses, following the same pose exchange (:class:`vings_core.exchange.PoseFollower`). It
 checkpoints the map after its first keyframe, every N keyframes, every T seconds while the map
 changes, and on shutdown, atomically, and resumes from the checkpoint at start
 (``mapper_node.checkpoint_path``, ``mapper_node.resume``) in the same world frame. Settings: params
@@ -28,11 +28,13 @@ from msg_adapters.image import float_image_to_msg, image_to_msg, rgb_float_to_ui
 from msg_adapters.keyframe import PART_TOPICS, KeyframeAssembler
 from msg_adapters.markers import keyframe_frustums_marker, marker_array, trajectory_marker
 from msg_adapters.pointcloud import points_to_pointcloud2
-from msg_adapters.pose import path_to_trajectory, trajectory_to_path
-from msg_adapters.stamps import header_ns
+from msg_adapters.exchange import batch_to_path, exchange_topic, path_to_batch
+from msg_adapters.pose import trajectory_to_path
 from vings_core.errors import InputError
+from vings_core.exchange import IncrementBatch, PoseFollower
+from vings_core.exchange.config import KEEPER
 from vings_core.mapping import Mapper, MapperConfig
-from vings_core.pipeline import MapperPoseLink, PoseUpdates, map_keyframe
+from vings_core.stages import MAPPER_SOURCE, map_keyframe
 from vings_core.types import Keyframe, Trajectory
 
 from . import registry
@@ -153,13 +155,12 @@ class MapperNode(StageNode):
             self.maybe_checkpoint(idle=False)
             return self._abort.is_set()
 
-        _, corrections = map_keyframe(self.mapper, self.link, kf, refine=True, chunk=TRAIN_CHUNK,
-                                      stop=stop)
+        _, batch = map_keyframe(self.mapper, self.follower, kf, refine=True, chunk=TRAIN_CHUNK, stop=stop)
         self.mark_changed()
         self.keyframes_mapped += 1
         self.rate.tick()
         stamp = int(kf.stamp_ns)
-        self._exchange_send(corrections)
+        self._exchange_send(batch)
         self._publish_refined(stamp)
         n_render = self.settings.render_every_keyframes
         if n_render and self.keyframes_mapped % n_render == 0:
@@ -224,43 +225,44 @@ class MapperNode(StageNode):
         return bool(self.mapper.keyframe_poses())
 
     # ----------------------------------------------------------------------- pose exchange
-    # Front-end keyframe poses moved by its window BA in (as increments), the mapper's
-    # refinements out (corrections), through vings_core.pipeline.MapperPoseLink.
+    # The mapper follows the front end's batches (/vings/exchange/frontend: window BA moves, what it
+    # did with the mapper's increments) and sends its refinements (/vings/exchange/mapper), through
+    # vings_core.exchange.PoseFollower.
 
     def _exchange_setup(self) -> None:
-        self.link = MapperPoseLink()
-        self._moved: list[dict[int, np.ndarray]] = []
+        self.follower = PoseFollower(MAPPER_SOURCE, self)
+        self._incoming: list[IncrementBatch] = []
         self._lock = threading.Lock()
-        sq = T.sensor_qos
-        self.create_subscription(Path, T.FRONTEND_KEYFRAMES_TOPIC, self._exchange_on_message,
-                                 sq(T.POSE_EXCHANGE_DEPTH))
-        self.pub_corr = self.create_publisher(Path, T.KEYFRAME_CORRECTIONS_TOPIC, sq(T.POSE_EXCHANGE_DEPTH))
+        qos = T.sensor_qos(T.POSE_EXCHANGE_DEPTH)
+        self.create_subscription(Path, exchange_topic(KEEPER), self._exchange_on_message, qos)
+        self.pub_exchange = self.create_publisher(Path, exchange_topic(MAPPER_SOURCE), qos)
+
+    def apply_increments(self, increments: dict[int, np.ndarray]) -> None:
+        """The follower's moves, applied to the map (it is the follower's pose owner)."""
+        if self.mapper.apply_increments(increments):
+            self.mark_changed()
 
     def _exchange_resumed(self, mapper: Mapper) -> None:
-        self.link.resumed(mapper.keyframe_poses())
+        self.follower.resumed(mapper.keyframe_poses())
 
     def _exchange_on_message(self, msg: Path) -> None:
         try:
-            traj = path_to_trajectory(msg, T.FRONTEND_KEYFRAMES_TOPIC)
-            ack = header_ns(msg.header, T.FRONTEND_KEYFRAMES_TOPIC)   # last correction batch it had seen
-        except Exception as e:  # noqa: BLE001 - a bad message is reported, the node keeps running
-            self.get_logger().warning(f"ignored a malformed keyframe-pose message: {e}")
+            batch = path_to_batch(msg, KEEPER)
+        except InputError as e:     # a bad message is reported, the node keeps running
+            self.get_logger().warning(f"ignored a malformed pose-exchange message: {e}")
             return
         with self._lock:
-            self._moved.append(PoseUpdates(zip(traj.stamps_ns.tolist(), traj.poses), ack=ack))
+            self._incoming.append(batch)
 
     def _exchange_receive(self) -> None:
         with self._lock:
-            pending, self._moved = self._moved, []
-        for moved in pending:
-            if self.link.apply_frontend_poses(self.mapper, moved):
-                self.mark_changed()
+            pending, self._incoming = self._incoming, []
+        for batch in pending:
+            self.follower.receive(batch)
 
-    def _exchange_send(self, corrections) -> None:
-        if corrections:
-            # header stamp: the batch number (the mapped keyframe's stamp), echoed by the front end
-            self.pub_corr.publish(trajectory_to_path(Trajectory.from_poses(corrections), self.ros.world_frame,
-                                                     stamp_ns=corrections.batch))
+    def _exchange_send(self, batch: Optional[IncrementBatch]) -> None:
+        if batch is not None:
+            self.pub_exchange.publish(batch_to_path(batch, self.ros.world_frame))
 
     # -------------------------------------------------------------------------------- shutdown
 
