@@ -104,3 +104,16 @@ def profiled(stage: str, step: str):
                 PROFILE.add(stage, step, time.perf_counter() - t0)
         return inner
     return wrap
+
+
+def timed_iter(items, stage: str, step: str):
+    """Yield from ``items``, timing each ``next()`` as ``(stage, step)`` (e.g. reading and decoding
+    frames)."""
+    it = iter(items)
+    while True:
+        with timed(stage, step):
+            try:
+                item = next(it)
+            except StopIteration:
+                return
+        yield item
