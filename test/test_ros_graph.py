@@ -60,6 +60,36 @@ def _procs_with_env(key: str, value: str) -> list[int]:
     return pids
 
 
+def _launch(domain: int, env: dict, ckpt: Path, params: tuple = ()) -> subprocess.Popen:
+    """`vings launch` with back-pressure, a checkpoint and the fast test parameters."""
+    cmd = [sys.executable, "-m", "vings_ros.cli", "launch", "--backpressure", "--domain-id", str(domain),
+           "--checkpoint", str(ckpt)]
+    for p in (*FAST_PARAMS, *params):
+        cmd += ["-p", p]
+    return subprocess.Popen(cmd, env=env, start_new_session=True, stdout=subprocess.PIPE,
+                            stderr=subprocess.STDOUT, text=True)
+
+
+def _replay_when_ready(ex, node, launcher, mcap: Path, domain: int, env: dict, topics: tuple) -> subprocess.Popen:
+    """Wait until the test's node is matched with the graph's publishers of ``topics``, then replay
+    ``mcap`` with back-pressure to its end (spinning the test's node meanwhile)."""
+    ready = time.monotonic() + 120
+    while time.monotonic() < ready and any(node.count_publishers(t) < 1 for t in topics):
+        ex.spin_once(timeout_sec=0.1)
+        assert launcher.poll() is None, f"graph died:\n{launcher.communicate()[0][-3000:]}"
+    assert all(node.count_publishers(t) >= 1 for t in topics), "the graph never came up"
+    _spin_for(ex, 1.0)
+    replay = subprocess.Popen(
+        [sys.executable, "-m", "vings_ros.cli", "replay", str(mcap), "--rate", "0", "--wait-for-graph",
+         "--domain-id", str(domain), "--ack-timeout", "120", "--startup-timeout", "60"],
+        env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    deadline = time.monotonic() + 240
+    while replay.poll() is None and time.monotonic() < deadline:
+        ex.spin_once(timeout_sec=0.05)
+    assert replay.poll() == 0, f"replay failed or timed out:\n{replay.communicate()[0][-3000:]}"
+    return replay
+
+
 @pytest.fixture(scope="module")
 def synthetic_mcap(tmp_path_factory) -> Path:
     from vings_core.sim import generate
@@ -87,12 +117,7 @@ def test_launch_replay_backpressure_end_to_end(synthetic_mcap, tmp_path):
     env = ros_environment(domain, log_dir=tmp_path / "roslog")
     env["VINGS_TEST_MARK"] = str(domain)
     ckpt = tmp_path / "map_ckpt.npz"
-    launch_cmd = [sys.executable, "-m", "vings_ros.cli", "launch", "--backpressure", "--domain-id",
-                  str(domain), "--checkpoint", str(ckpt)]
-    for p in FAST_PARAMS:
-        launch_cmd += ["-p", p]
-    launcher = subprocess.Popen(launch_cmd, env=env, start_new_session=True,
-                                stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    launcher = _launch(domain, env, ckpt)
     saved_env = dict(os.environ)
     apply_ros_environment(domain, log_dir=tmp_path / "roslog")
     rclpy.init()
@@ -106,23 +131,8 @@ def test_launch_replay_backpressure_end_to_end(synthetic_mcap, tmp_path):
     ex.add_node(node)
     replay = None
     try:
-        # the listener must be matched with the graph's publishers before any frame is replayed
-        ready = time.monotonic() + 120
-        while time.monotonic() < ready and (node.count_publishers(T.ODOMETRY_TOPIC) < 1 or
-                                            node.count_publishers(T.RENDER_COLOR_TOPIC) < 1):
-            ex.spin_once(timeout_sec=0.1)
-            assert launcher.poll() is None, f"graph died:\n{launcher.communicate()[0][-3000:]}"
-        assert node.count_publishers(T.ODOMETRY_TOPIC) >= 1, "front end never came up"
-        _spin_for(ex, 1.0)
-        replay = subprocess.Popen(
-            [sys.executable, "-m", "vings_ros.cli", "replay", str(synthetic_mcap), "--rate", "0",
-             "--wait-for-graph", "--domain-id", str(domain), "--ack-timeout", "120",
-             "--startup-timeout", "60"],
-            env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-        deadline = time.monotonic() + 240
-        while replay.poll() is None and time.monotonic() < deadline:
-            ex.spin_once(timeout_sec=0.05)
-        assert replay.poll() == 0, f"replay failed or timed out:\n{replay.communicate()[0][-3000:]}"
+        replay = _replay_when_ready(ex, node, launcher, synthetic_mcap, domain, env,
+                                    (T.ODOMETRY_TOPIC, T.RENDER_COLOR_TOPIC))
         # the mapper works on the last keyframes after the front end is done: wait for a render
         settle = time.monotonic() + 90
         while time.monotonic() < settle and (not renders or time.monotonic() < settle - 85):
@@ -290,3 +300,108 @@ def test_mapper_killed_and_restarted_resumes_from_checkpoint(synthetic_mcap, tmp
     for s, P in before.items():   # same world frame: pre-crash poses kept (refinement moves mm)
         assert np.linalg.norm(after[s][:3, 3] - P[:3, 3]) < 0.05
     assert not cleanup_fastdds_shm(snap, dry_run=True)
+
+
+class _FixerNode:
+    """A third pose writer on the topics, as a loop closer would be: it follows the front end's
+    batches and, once ``after`` keyframes were emitted, moves every keyframe it knows by ``G``."""
+
+    def __init__(self, node, G: np.ndarray, after: int) -> None:
+        from geometry_msgs.msg import PoseStamped
+        from nav_msgs.msg import Path as PathMsg
+
+        from msg_adapters import topics as T
+        from msg_adapters.exchange import exchange_topic, path_to_batch
+        from msg_adapters.pose import pose_stamped_to_matrix
+        from vings_core.exchange import PoseFollower
+
+        self.G, self.after = G, after
+        self.poses: dict[int, np.ndarray] = {}
+        self.emitted: dict[int, np.ndarray] = {}
+        self.fixed: set[int] = set()
+        self.follower = PoseFollower("fixer", self)
+        qos = T.sensor_qos(T.POSE_EXCHANGE_DEPTH)
+        self.pub = node.create_publisher(PathMsg, exchange_topic("fixer"), qos)
+
+        def on_pose(m):
+            s, P = pose_stamped_to_matrix(m, T.KEYFRAME_POSE_TOPIC)
+            self.poses[s], self.emitted[s] = P.copy(), P.copy()
+            self.follower.keyframe_added(s, P)
+
+        node.create_subscription(PoseStamped, T.KEYFRAME_POSE_TOPIC, on_pose, T.sensor_qos(100))
+        node.create_subscription(PathMsg, exchange_topic("frontend"),
+                                 lambda m: self.follower.receive(path_to_batch(m, "frontend")), qos)
+
+    def apply_increments(self, incs: dict) -> None:
+        from vings_core.geometry import sim3_apply_to_pose
+        for s, C in incs.items():
+            self.poses[s] = sim3_apply_to_pose(C, self.poses[s])
+
+    def poll(self) -> None:
+        from msg_adapters.exchange import batch_to_path
+        if self.fixed or len(self.poses) < self.after:
+            return
+        incs = {s: self.G for s in self.poses}
+        self.apply_increments(incs)
+        self.fixed = set(incs)
+        self.pub.publish(batch_to_path(self.follower.send(incs)))
+
+
+def test_third_pose_writer_over_topics_moves_front_end_and_mapper(synthetic_mcap, tmp_path):
+    """A fake stage on /vings/exchange/fixer applies a known rigid correction to every keyframe while
+    the graph runs: the front end (its path) and the mapper (its final checkpoint) both end at the
+    corrected poses, with the increments that crossed in flight neither lost nor applied twice."""
+    import rclpy
+    from nav_msgs.msg import Path as PathMsg
+    from rclpy.executors import SingleThreadedExecutor
+
+    from msg_adapters import topics as T
+    from msg_adapters.pose import path_to_trajectory
+    from vings_core.geometry import np_pose, np_so3_exp
+    from vings_core.mapping import Mapper
+    from vings_ros.ros_env import apply_ros_environment, cleanup_fastdds_shm, ros_environment, shm_snapshot
+
+    domain = _domain() + 1
+    snap = shm_snapshot()
+    env = ros_environment(domain, log_dir=tmp_path / "roslog")
+    ckpt = tmp_path / "map_ckpt.npz"
+    # no mapper refinement, so only the window BA and the fixer move poses (a refinement made after
+    # the front end stopped is never answered: it stays in the mapper alone)
+    launcher = _launch(domain, env, ckpt, ("exchange.extra_writers=[fixer]", "mapping.refine_mode=none"))
+    saved_env = dict(os.environ)
+    apply_ros_environment(domain, log_dir=tmp_path / "roslog")
+    rclpy.init()
+    node = rclpy.create_node("vings_test_fixer")
+    G = np_pose(np_so3_exp(np.array([0.0, 0.05, 0.0])), np.array([0.3, 0.0, -0.2]))
+    fixer = _FixerNode(node, G, after=2)
+    paths: list = []
+    node.create_subscription(PathMsg, T.PATH_TOPIC, paths.append, T.latched_qos(1))
+    node.create_timer(0.2, fixer.poll)
+    ex = SingleThreadedExecutor()
+    ex.add_node(node)
+    try:
+        _replay_when_ready(ex, node, launcher, synthetic_mcap, domain, env,
+                           (T.ODOMETRY_TOPIC, T.EXCHANGE_TOPIC_PREFIX + "frontend"))
+        _spin_for(ex, 5.0)
+        os.killpg(launcher.pid, signal.SIGINT)
+        out, _ = launcher.communicate(timeout=200)
+        assert launcher.returncode == 0, f"unclean shutdown (exit {launcher.returncode}):\n{out[-3000:]}"
+        _spin_for(ex, 2.0)
+    finally:
+        if launcher.poll() is None:
+            os.killpg(launcher.pid, signal.SIGKILL)
+            launcher.wait()
+        _close_listener(ex, node, saved_env)
+        cleanup_fastdds_shm(snap)
+    assert fixer.fixed, "the fixer never saw enough keyframes"
+    fe = path_to_trajectory(paths[-1])
+    fe_poses = dict(zip(fe.stamps_ns.tolist(), fe.poses))
+    m = Mapper.load_checkpoint(ckpt)
+    kf = m.keyframe_poses()
+    m.close()
+    assert fixer.fixed <= set(kf) and len(kf) > len(fixer.fixed)
+    for s, P in kf.items():             # front end, mapper and fixer agree (float32-free path: 1e-6)
+        np.testing.assert_allclose(P, fe_poses[s], atol=1e-6)
+        np.testing.assert_allclose(fixer.poses[s], P, atol=1e-6)
+    first = min(kf)                     # the gauge keyframe: only the correction moved it
+    np.testing.assert_allclose(kf[first], G @ fixer.emitted[first], atol=1e-6)
