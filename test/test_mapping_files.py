@@ -2,6 +2,7 @@
 killed mapper, and checkpoint / map.ply writing without gathering the passive store in memory."""
 from __future__ import annotations
 
+import json
 import os
 import subprocess
 import sys
@@ -166,12 +167,14 @@ def test_checkpoint_and_ply_do_not_gather_the_spilled_passive_store(tmp_path):
 
 
 def test_older_stacked_checkpoint_layout_still_loads(tmp_path):
-    # checkpoints written before the chunked layout hold the passive store in stacked arrays
-    # (passive/<field> + passive_chunks/{chunk, owner_chunk, owners, owner_T})
+    # checkpoint version 3 holds the passive store in stacked arrays (passive/<field> +
+    # passive_chunks/{chunk, owner_chunk, owners, owner_T}) and says "version": 1
     m = _spilled_mapper(tmp_path, chunks=3, n=500)
     m.save_checkpoint(tmp_path / "new.npz")
     with np.load(tmp_path / "new.npz") as z:
-        entries = {k: z[k] for k in z.files}
+        entries = {k: z[k] for k in z.files if not k.endswith("/owner_s") and not k.startswith("pose_gn/")}
+    meta = json.loads(bytes(entries["meta"]).decode())
+    entries["meta"] = np.frombuffer(json.dumps({**meta, "version": 1}).encode(), dtype=np.uint8)
     count = int(entries.pop("pchunk/count"))
     parts = [{k.split("/", 2)[2]: entries.pop(k) for k in list(entries) if k.startswith(f"pchunk/{c}/")}
              for c in range(count)]

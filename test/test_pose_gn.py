@@ -193,10 +193,10 @@ def test_gn_decay_scales_each_keyframes_t_th_step_by_one_over_t():
     from vings_core.mapping import Mapper, MapperConfig
     m = Mapper(MapperConfig())
     stamps = torch.tensor([10, 20, 30])
-    f1 = m._gn_step_scale(stamps, torch.tensor([True, True, False]))
-    f2 = m._gn_step_scale(stamps, torch.tensor([True, False, True]))
-    f3 = m._gn_step_scale(stamps, torch.tensor([True, True, True]))
+    f1 = m.refiner.gn_step_scale(stamps, torch.tensor([True, True, False]))
+    f2 = m.refiner.gn_step_scale(stamps, torch.tensor([True, False, True]))
+    f3 = m.refiner.gn_step_scale(stamps, torch.tensor([True, True, True]))
     assert f1.tolist() == [1.0, 1.0, 0.0]
     assert f2.tolist() == [0.5, 0.0, 1.0]
     assert f3.tolist() == pytest.approx([1 / 3, 1 / 2, 1 / 2])
-    assert m._pose_gn_steps == {10: 3, 20: 2, 30: 2}
+    assert m.refiner.gn_steps == {10: 3, 20: 2, 30: 2}

@@ -8,10 +8,11 @@ Public API::
     m.render(T_wc, camera)          # numpy color / depth / normal / alpha
     m.keyframe_poses(); m.set_keyframe_poses({stamp: T_wc})
     m.save_ply(path); m.save_checkpoint(path); Mapper.load_checkpoint(path, config)
+    m.apply_increments({stamp: C})  # world-frame Sim(3) corrections; Gaussians follow
 """
-from .config import MapperConfig
+from .config import MapperConfig, RefineMode, RefineSolver
 from .gaussians import GaussianMap
 from .mapper import Mapper
 from .ply import read_ply, write_ply
 
-__all__ = ["Mapper", "MapperConfig", "GaussianMap", "read_ply", "write_ply"]
+__all__ = ["Mapper", "MapperConfig", "RefineMode", "RefineSolver", "GaussianMap", "read_ply", "write_ply"]

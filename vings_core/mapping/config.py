@@ -10,8 +10,28 @@ See docs/mapping.md.
 """
 from __future__ import annotations
 
+import enum
 from dataclasses import dataclass, field
 from typing import ClassVar
+
+
+class RefineMode(str, enum.Enum):
+    """Which poses single-to-multi pose refinement moves (params strings: the values)."""
+    NONE = "none"          # no refinement
+    SINGLE = "single"      # only the rendered keyframe's camera; the map is held (MonoGS/SplaTAM baseline)
+    MULTI = "multi"        # every keyframe owning visible Gaussians, its Gaussians moving with it
+
+    def __str__(self) -> str:
+        return str(self.value)
+
+
+class RefineSolver(str, enum.Enum):
+    """How a pose-refinement step is computed (params strings: the values)."""
+    GN = "gn"              # damped Gauss-Newton on the normal equations of a batch of renders (pose_gn.py)
+    ADAM = "adam"          # Adam steps on autograd gradients of the training loss
+
+    def __str__(self) -> str:
+        return str(self.value)
 
 
 @dataclass
@@ -92,9 +112,9 @@ class MapperConfig:
     spill_dir: str = ""                # "" = a private temporary folder
 
     # ---- single-to-multi pose refinement
-    refine_mode: str = "multi"         # "none" | "single" (rendered pose only) | "multi"
+    refine_mode: RefineMode = RefineMode.MULTI   # none | single (rendered pose only) | multi
     refine_iters: int = 10             # per call of refine_poses()
-    refine_solver: str = "gn"          # "gn": damped Gauss-Newton per render (pose_gn.py); "adam": gradient steps
+    refine_solver: RefineSolver = RefineSolver.GN  # gn: damped Gauss-Newton (pose_gn.py); adam: gradient steps
     refine_gn_sigma_rgb: float = 0.05  # gn: colour residual noise (intensity in [0, 1]); depth uses depth_rel_std0
     refine_gn_huber: float = 2.0       # gn: Huber threshold in noise stds
     refine_gn_blur_px: float = 1.0     # gn: Gaussian blur of render and keyframe (wider convergence basin), px
@@ -121,6 +141,14 @@ class MapperConfig:
         "refine_lr_trans": "'refine_lr_trans_rel', a fraction of the window's median keyframe depth "
                            "per step instead of metres (3.5e-4 = 1 mm at 2.9 m)"}
 
+    def __post_init__(self) -> None:
+        # the string policies as their Enum (a params string, or a value given in code); an unknown
+        # string stays as it is for validate() to name
+        for name, kind in (("refine_mode", RefineMode), ("refine_solver", RefineSolver)):
+            value = getattr(self, name)
+            if not isinstance(value, kind) and value in [k.value for k in kind]:
+                setattr(self, name, kind(value))
+
     def validate(self) -> None:
         if not 0 <= self.sh_degree <= 3:
             raise ValueError(f"sh_degree must be 0..3, got {self.sh_degree}")
@@ -134,10 +162,9 @@ class MapperConfig:
             raise ValueError(f"history_ratio must be in [0, 1), got {self.history_ratio}")
         if not 0 < self.sample_ratio <= 1:
             raise ValueError(f"sample_ratio must be in (0, 1], got {self.sample_ratio}")
-        if self.refine_mode not in ("none", "single", "multi"):
-            raise ValueError(f"refine_mode must be none|single|multi, got {self.refine_mode!r}")
-        if self.refine_solver not in ("gn", "adam"):
-            raise ValueError(f"refine_solver must be gn|adam, got {self.refine_solver!r}")
+        for name, kind in (("refine_mode", RefineMode), ("refine_solver", RefineSolver)):
+            if not isinstance(getattr(self, name), kind):
+                raise ValueError(f"{name} must be {'|'.join(k.value for k in kind)}, got {getattr(self, name)!r}")
         for name in ("refine_gn_sigma_rgb", "refine_gn_huber", "refine_gn_max_trans_rel", "refine_gn_max_rot"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")

@@ -15,7 +15,7 @@ Every field has one row per Gaussian. Geometry is in the world frame (metres):
 * Sparse-Adam state: ``m_<param>`` / ``v_<param>`` first and second moments of each parameter and
   ``adam_step`` (N,) int32 per-row step counts.
 
-All operations (index, concat, remove, rigid transforms) are vectorised over rows.
+All operations (index, concat, remove, rigid and similarity transforms) are vectorised over rows.
 """
 from __future__ import annotations
 
@@ -193,7 +193,7 @@ class GaussianMap:
         """(N, 3) view-independent colour (DC band) in [0, 1] (unclamped)."""
         return sh_dc_to_rgb(self.sh[:, 0])
 
-    # ------------------------------------------------------------------ rigid motion
+    # ------------------------------------------------------------------ rigid and similarity motion
     def apply_rigid(self, T: torch.Tensor, rows: torch.Tensor | None = None) -> None:
         """In place: move Gaussians rigidly by world-frame transforms.
 
@@ -203,19 +203,34 @@ class GaussianMap:
         Adam first moments of means, quats and SH are rotated along (they are expressed in the
         world frame); second moments are kept.
         """
+        self.apply_similarity(T, rows, None)
+
+    def apply_similarity(self, T: torch.Tensor, rows: torch.Tensor | None = None,
+                         scale: torch.Tensor | None = None) -> None:
+        """In place: move Gaussians by world-frame similarities ``x -> s R x + t``.
+
+        ``T``: (4, 4) ``[[s R, t], [0, 1]]`` for all ``rows`` or (M, 4, 4) one per selected row;
+        ``scale``: the ``s`` of each (a scalar or (M,); None: 1, ``T`` rigid, as
+        :meth:`apply_rigid`). Means are transformed, rotations left-multiplied by ``R``, SH bands
+        >= 1 rotated by ``R``, in-plane scales multiplied by ``s`` (``log s`` added to the
+        log-scales). Adam first moments of means, quats and SH are rotated by ``R`` (not scaled:
+        Adam's step ``m / sqrt(v)`` is invariant to a common gradient scale); second moments kept.
+        """
         sel = torch.arange(len(self), device=self.device) if rows is None else rows
         if sel.dtype == torch.bool:
             sel = sel.nonzero()[:, 0]
         if sel.numel() == 0:
             return
         T = T.to(torch.float64)
-        R = T[..., :3, :3]
+        L = T[..., :3, :3]
         t = T[..., :3, 3]
         mu = self.means[sel].to(torch.float64)
         if T.ndim == 2:
-            R = R.expand(len(sel), 3, 3)
+            L = L.expand(len(sel), 3, 3)
             t = t.expand(len(sel), 3)
-        mu = (R @ mu[:, :, None])[:, :, 0] + t
+        mu = (L @ mu[:, :, None])[:, :, 0] + t
+        s = None if scale is None else torch.as_tensor(scale, dtype=torch.float64).expand(len(sel))
+        R = L if s is None else L / s[:, None, None]
         from ..geometry import rotmat_to_quat
         qR = rotmat_to_quat(R)
         q = quat_multiply(qR, self.quats[sel].to(torch.float64))
@@ -227,11 +242,12 @@ class GaussianMap:
         self.quats[sel] = q.to(torch.float32)
         self.m_means[sel] = mm.to(torch.float32)
         self.m_quats[sel] = mq.to(torch.float32)
+        if s is not None:
+            self.log_scales[sel] = (self.log_scales[sel].to(torch.float64) + torch.log(s)[:, None]).to(torch.float32)
         if self.sh.shape[1] > 1:
             from ..render.sh import rotate_sh
             self.sh[sel] = rotate_sh(self.sh[sel], R)
             self.m_sh[sel] = rotate_sh(self.m_sh[sel], R)
-
 
 def field_names() -> Iterable[str]:
     return ALL_FIELDS

@@ -9,7 +9,9 @@ The passive store keeps whole :class:`GaussianMap` records (parameters, scores, 
 numpy arrays; a spilled chunk is one ``.npz`` file written atomically. Every round trip
 (memory or disk) is bit-exact. Each chunk remembers the poses its owner keyframes had when it was
 stored; if a keyframe pose changed meanwhile (loop closure, pose refinement) its Gaussians are moved
-rigidly by the pose change when they come back (paper eq. loop correction).
+rigidly by the pose change when they come back (paper eq. loop correction). A similarity (scale)
+correction of an owner is kept as a pending scale ``s`` per owner: on return its Gaussians move by
+``T_now diag(s, s, s, 1) T_stored^-1`` (scaled about the stored camera centre, then moved rigidly).
 """
 from __future__ import annotations
 
@@ -21,7 +23,7 @@ import socket
 import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable, Optional
+from typing import Callable, Iterator, Optional
 
 import numpy as np
 import torch
@@ -196,6 +198,7 @@ class _Chunk:
     nbytes: int
     owners: np.ndarray                      # unique owner stamps (int64, sorted)
     owner_T: np.ndarray                     # (U, 4, 4) owner poses when stored
+    owner_s: np.ndarray                     # (U,) float64 scale still to apply on return (1: none)
     arrays: Optional[dict] = None           # None when spilled
     path: Optional[Path] = None
 
@@ -247,15 +250,18 @@ class PassiveStore:
         return np.unique(np.concatenate([c.owners for c in self.chunks]))
 
     # ---------------------------------------------------------------- put / take
-    def put(self, gm: GaussianMap, poses: dict[int, np.ndarray]) -> None:
-        """Store ``gm`` (moved to host memory) as one chunk; ``poses``: stamp -> T_wc of owners now."""
+    def put(self, gm: GaussianMap, poses: dict[int, np.ndarray], scales: Optional[dict[int, float]] = None) -> None:
+        """Store ``gm`` (moved to host memory) as one chunk; ``poses``: stamp -> T_wc of owners now;
+        ``scales``: stamp -> scale still to apply to the owner's Gaussians on return (None: none;
+        what :meth:`stored_chunks` gives back)."""
         if len(gm) == 0:
             return
         arrays = gm.to_numpy()
         owners = np.unique(arrays["kf_id"])
         owner_T = np.stack([np.asarray(poses.get(int(s), np.eye(4)), dtype=np.float64) for s in owners])
+        owner_s = np.array([float((scales or {}).get(int(s), 1.0)) for s in owners], dtype=np.float64)
         nbytes = int(sum(a.nbytes for a in arrays.values()))
-        self.chunks.append(_Chunk(next(self._ids), len(gm), nbytes, owners, owner_T, arrays))
+        self.chunks.append(_Chunk(next(self._ids), len(gm), nbytes, owners, owner_T, owner_s, arrays))
         self._spill_if_needed()
 
     def take(self, want_owner: Callable[[np.ndarray], np.ndarray], poses: dict[int, np.ndarray],
@@ -280,7 +286,7 @@ class PassiveStore:
             rows = np.isin(arrays["kf_id"], c.owners[sel_owner])
             part = {k: v[rows] for k, v in arrays.items()}
             gm = GaussianMap.from_numpy(part)
-            _apply_pose_changes(gm, c.owners, c.owner_T, poses)
+            _apply_pose_changes(gm, c.owners, c.owner_T, c.owner_s, poses)
             out.append(gm)
             if remove:
                 if c.path is not None and c.path.exists():
@@ -289,9 +295,9 @@ class PassiveStore:
                 if rest.any():
                     ra = {k: v[rest] for k, v in arrays.items()}
                     o = np.unique(ra["kf_id"])
-                    keep_T = c.owner_T[np.searchsorted(c.owners, o)]
-                    kept.append(_Chunk(next(self._ids), int(rest.sum()),
-                                       int(sum(a.nbytes for a in ra.values())), o, keep_T, ra))
+                    keep = np.searchsorted(c.owners, o)
+                    kept.append(_Chunk(next(self._ids), int(rest.sum()), int(sum(a.nbytes for a in ra.values())),
+                                       o, c.owner_T[keep], c.owner_s[keep], ra))
             else:
                 kept.append(c)
         if remove or lost:       # kept: every chunk but the lost ones (and, if remove, the taken rows)
@@ -307,50 +313,57 @@ class PassiveStore:
         parts = list(self.iter_moved(poses))
         return GaussianMap.concat(parts) if parts else None
 
-    def stored_chunks(self):
+    def stored_chunks(self) -> Iterator[tuple[dict, np.ndarray, np.ndarray, np.ndarray]]:
         """The store as stored, one chunk at a time (a spilled chunk is read only while it is
-        yielded), for a lossless checkpoint: ``(fields, owners, owner_T)`` with the Gaussians'
-        fields ``{name: rows}`` *not* moved by pose changes since they were stored and, per owner
-        stamp, the pose it was stored under. Saving the moved Gaussians instead would round a later
-        pose change differently (two float32 moves instead of one). Chunks whose file is lost are
-        reported and dropped. Restore with :meth:`put` ``(GaussianMap.from_numpy(fields),
-        dict(zip(owners, owner_T)))`` in the same order."""
+        yielded), for a lossless checkpoint: ``(fields, owners, owner_T, owner_s)`` with the
+        Gaussians' fields ``{name: rows}`` *not* moved by pose changes since they were stored and,
+        per owner stamp, the pose it was stored under and the scale still pending. Saving the moved
+        Gaussians instead would round a later pose change differently (two float32 moves instead of
+        one). Chunks whose file is lost are reported and dropped. Restore with :meth:`put`
+        ``(GaussianMap.from_numpy(fields), dict(zip(owners, owner_T)), dict(zip(owners, owner_s)))``
+        in the same order."""
         for c in list(self.chunks):
             arrays = self._read(c)
             if arrays is None:
                 self.chunks.remove(c)
                 continue
-            yield arrays, c.owners, c.owner_T
+            yield arrays, c.owners, c.owner_T, c.owner_s
 
-    def iter_moved(self, poses: dict[int, np.ndarray]):
+    def iter_moved(self, poses: dict[int, np.ndarray]) -> Iterator[GaussianMap]:
         """Every stored Gaussian, one chunk at a time (copies moved by pose changes since they were
         stored; the store unchanged): for writing a large map without gathering it in memory."""
-        for arrays, owners, owner_T in self.stored_chunks():
+        for arrays, owners, owner_T, owner_s in self.stored_chunks():
             gm = GaussianMap.from_numpy({k: v.copy() for k, v in arrays.items()})
-            _apply_pose_changes(gm, owners, owner_T, poses)
+            _apply_pose_changes(gm, owners, owner_T, owner_s, poses)
             yield gm
-
-    def restore(self, state: dict[str, np.ndarray]) -> None:
-        """Append the chunks of a :meth:`state` (same chunk order and owner snapshots)."""
-        if not state:
-            return
-        for k in np.unique(state["chunk"]):
-            rows = state["chunk"] == k
-            own = state["owner_chunk"] == k
-            snap = {int(s): T for s, T in zip(state["owners"][own], state["owner_T"][own])}
-            self.put(GaussianMap.from_numpy({name: state[name][rows] for name in ALL_FIELDS}), snap)
 
     def resnapshot(self, changes: dict[int, tuple[np.ndarray, np.ndarray]]) -> None:
         """Owner pose changes that must not move the stored Gaussians: ``changes`` maps stamp ->
         ``(T_old, T_new)`` (``T_wc``). A snapshot ``S`` becomes ``S T_old^-1 T_new`` (``T_new``
         itself when ``S`` is ``T_old``), so the move applied when they come back (``T_now S^-1``)
-        stays the one still pending from earlier moving changes, if any, and gains nothing."""
+        stays the one still pending from earlier moving changes, if any, and gains nothing. With a
+        pending scale ``s`` (``Z = diag(s, s, s, 1)``) it becomes ``S Z^-1 T_old^-1 T_new Z``, which
+        keeps ``T_now Z S^-1`` the same."""
         for c in self.chunks:
             for i, s in enumerate(c.owners):
                 if int(s) in changes:
                     T_old, T_new = changes[int(s)]
-                    S = c.owner_T[i]
-                    c.owner_T[i] = T_new if np.array_equal(S, T_old) else S @ np.linalg.inv(T_old) @ T_new
+                    S, k = c.owner_T[i], float(c.owner_s[i])
+                    if k != 1.0:
+                        Z = np.diag([k, k, k, 1.0])
+                        c.owner_T[i] = S @ np.linalg.inv(Z) @ np.linalg.inv(T_old) @ T_new @ Z
+                    else:
+                        c.owner_T[i] = T_new if np.array_equal(S, T_old) else S @ np.linalg.inv(T_old) @ T_new
+
+    def rescale(self, scales: dict[int, float]) -> None:
+        """Owners whose Gaussians are to be scaled by ``scales[stamp]`` about their keyframe's
+        camera centre (a similarity correction ``C`` of the keyframe: the new pose is
+        :func:`~vings_core.geometry.sim3_apply_to_pose` ``(C, T_old)``, so ``C = T_new diag(s, s, s, 1) T_old^-1``).
+        The scale is applied when they come back, with the pose change; the snapshots stay."""
+        for c in self.chunks:
+            for i, s in enumerate(c.owners):
+                if int(s) in scales:
+                    c.owner_s[i] = c.owner_s[i] * float(scales[int(s)])
 
     def clear(self) -> None:
         for c in self.chunks:
@@ -403,19 +416,30 @@ class PassiveStore:
             pass
 
 
-def _apply_pose_changes(gm: GaussianMap, owners: np.ndarray, owner_T: np.ndarray,
+def _apply_pose_changes(gm: GaussianMap, owners: np.ndarray, owner_T: np.ndarray, owner_s: np.ndarray,
                         poses: dict[int, np.ndarray]) -> None:
-    """Move ``gm``'s Gaussians by ``T_now @ T_stored^-1`` of their owner where the pose changed."""
+    """Move ``gm``'s Gaussians by ``T_now diag(s, s, s, 1) T_stored^-1`` of their owner where the
+    pose changed or a scale ``s`` (``owner_s``) is pending."""
     if not poses or len(gm) == 0:
         return
     now = np.stack([np.asarray(poses.get(int(s), owner_T[i]), dtype=np.float64) for i, s in enumerate(owners)])
-    changed = np.any(now != owner_T, axis=(1, 2))
+    scaled = owner_s != 1.0
+    changed = np.any(now != owner_T, axis=(1, 2)) | scaled
     if not changed.any():
         return
     delta = now @ np.linalg.inv(owner_T)
+    if scaled.any():
+        Z = np.zeros((int(scaled.sum()), 4, 4))
+        Z[:, [0, 1, 2], [0, 1, 2]] = owner_s[scaled, None]
+        Z[:, 3, 3] = 1.0
+        delta[scaled] = now[scaled] @ Z @ np.linalg.inv(owner_T[scaled])
     idx = np.searchsorted(owners, gm.kf_id.numpy())
     rows = torch.from_numpy(changed[idx])
-    gm.apply_rigid(torch.from_numpy(delta[idx][changed[idx]]), rows)
+    moves = torch.from_numpy(delta[idx][changed[idx]])
+    if scaled.any():
+        gm.apply_similarity(moves, rows, torch.from_numpy(owner_s[idx][changed[idx]]))
+    else:
+        gm.apply_rigid(moves, rows)
 
 
 def spill_dir_size(path: str | os.PathLike) -> int:

@@ -1,0 +1,186 @@
+"""The training step: one render of a window (or history) keyframe, its losses, the backward pass
+and a sparse Adam step on the unstable Gaussians it reaches, with the score manager's hooks.
+
+Losses (paper): ``lambda_rgb L_rgb + lambda_depth L_d (+ lambda_normal L_n + lambda_acc L_acc)``
+(:mod:`.losses`). Keyframes are drawn from the local window in shuffled rounds; with probability
+``history_ratio`` an older keyframe within ``tau`` of the newest one is trained on instead
+(against forgetting). Learning rates are per Adam step, one per parameter column.
+"""
+from __future__ import annotations
+
+import math
+from typing import Optional
+
+import numpy as np
+import torch
+
+from ..geometry import pose_inverse
+from ..types import Keyframe
+from .gaussians import PARAM_FIELDS, GaussianMap
+from .history import expand_keyframe
+from .init import empty_mask, usable_depth_mask
+from .losses import (accumulation_loss, depth_loss, depth_weight, l1_map, normal_loss, normals_from_depth,
+                     rgb_loss, ssim_target_stats)
+from .optim import sparse_adam_step_fast
+from .score_manager import ScoreManager
+from .state import MapState
+
+
+class Trainer:
+    """Training of the map in ``st`` (:class:`MapState`); ``scores``: the score manager strategy
+    whose hooks each step calls. Owns the shuffled round of window keyframes (``queue``) and the
+    cached per-keyframe loss inputs."""
+
+    def __init__(self, st: MapState, scores: ScoreManager) -> None:
+        self.st = st
+        self.scores = scores
+        self.queue: list[int] = []                  # shuffled round of window stamps
+        self._aux: dict[int, dict] = {}             # cached per-keyframe masks / weights
+
+    def new_round(self) -> None:
+        """Start a new shuffled round (the window changed)."""
+        self.queue = []
+
+    def forget(self, stamp: int) -> None:
+        """Drop what is cached for keyframe ``stamp`` (it left the window)."""
+        self._aux.pop(stamp, None)
+
+    def next_keyframe(self, queue: list[int]) -> Keyframe:
+        """The next window keyframe of the shuffled round ``queue`` (refilled from the mapper's
+        random generator when empty)."""
+        st = self.st
+        if not queue:
+            perm = torch.randperm(len(st.window), generator=st.rng).tolist()
+            queue.extend(st.window[i].stamp_ns for i in perm)
+        return st.window_keyframe(queue.pop(0))
+
+    def keyframe_aux(self, kf: Keyframe) -> dict:
+        """Per-keyframe constant loss inputs, cached while the keyframe is in the window."""
+        history = self.st.history
+        a = self._aux.get(kf.stamp_ns) if kf.stamp_ns not in history else None
+        if a is None or a["T"] is not kf.depth:
+            cfg = self.st.cfg
+            a = {"T": kf.depth, "usable": usable_depth_mask(kf, cfg.max_depth, cfg.max_depth_rel_std),
+                 "w_depth": depth_weight(kf.depth, kf.inv_depth_var, cfg.depth_rel_std0),
+                 "masked": empty_mask(kf, cfg.max_depth),
+                 "ssim_stats": ssim_target_stats(kf.image) if cfg.lambda_ssim > 0 else None}
+            if kf.stamp_ns not in history:
+                self._aux[kf.stamp_ns] = a
+        return a
+
+    def losses(self, out, kf: Keyframe, it_terms: dict, with_normal: bool = True, with_acc: bool = True,
+               expected_depth: bool = False) -> torch.Tensor:
+        """Training loss of one render. ``expected_depth`` (pose refinement): the depth term compares
+        the expected depth ``D_hat / alpha`` where ``alpha > 0.5`` instead of the accumulated depth
+        ``D_hat``: the accumulated depth is short of the surface wherever alpha < 1, which for the
+        map means "fill this pixel" but would pull a camera along its axis. ``it_terms`` receives
+        the terms' values and the per-pixel L1 map (``l1_map``)."""
+        cfg = self.st.cfg
+        img = kf.image
+        aux = self.keyframe_aux(kf)
+        l1 = l1_map(out.color, img)
+        it_terms["l1_map"] = l1.detach()
+        l_rgb = rgb_loss(out.color, img, cfg.lambda_ssim, target_stats=aux["ssim_stats"], l1=l1)
+        if expected_depth:
+            a = out.alpha
+            l_d = depth_loss(out.depth / a.clamp_min(1e-6), kf.depth, aux["w_depth"],
+                             aux["usable"] & (a.detach() > 0.5))
+        else:
+            l_d = depth_loss(out.depth, kf.depth, aux["w_depth"], aux["usable"])
+        total = cfg.lambda_rgb * l_rgb + cfg.lambda_depth * l_d
+        l_n = torch.zeros(())
+        l_a = torch.zeros(())
+        if with_normal and cfg.lambda_normal > 0 and self.st.render_count >= cfg.normal_loss_warmup:
+            a = out.alpha
+            exp_d = out.depth / a.clamp_min(1e-6)
+            n_d, ok = normals_from_depth(exp_d, kf.camera)
+            ok = ok & (a.detach() > 0.5)
+            l_n = normal_loss(out.normal, n_d, torch.ones_like(a), ok)
+            total = total + cfg.lambda_normal * l_n
+        if with_acc and cfg.lambda_acc > 0:
+            l_a = accumulation_loss(out.alpha, aux["masked"])
+            total = total + cfg.lambda_acc * l_a
+        it_terms.update(loss=float(total.detach()), rgb=float(l_rgb.detach()), depth=float(l_d.detach()),
+                        normal=float(l_n.detach()), acc=float(l_a.detach()))
+        return total
+
+    def history_keyframe(self) -> Optional[Keyframe]:
+        """With probability ``history_ratio``, an older keyframe (not in the window) whose camera is
+        within ``tau`` of the newest keyframe, uniformly; else None."""
+        st = self.st
+        cfg = st.cfg
+        if cfg.history_ratio <= 0 or not st.history:
+            return None
+        if float(torch.rand((), generator=st.rng)) >= cfg.history_ratio:
+            return None
+        cur = st.poses[st.window[-1].stamp_ns][:3, 3]
+        stamps = st.history.stamps()
+        pos = np.stack([st.poses[s][:3, 3] for s in stamps])
+        cand = np.flatnonzero(np.linalg.norm(pos - cur, axis=1) < cfg.tau)
+        if not len(cand):
+            return None
+        s = stamps[int(cand[int(torch.randint(len(cand), (), generator=st.rng))])]
+        rec = st.history.get(s)     # None: its spill file was lost (reported); skip this turn
+        return None if rec is None else expand_keyframe(rec, s, st.poses[s], st.camera)
+
+    def step(self) -> dict:
+        """One training iteration; returns its loss terms and the render's PSNR (dB)."""
+        st = self.st
+        cfg = st.cfg
+        gm = st.gm
+        hist = self.history_keyframe()
+        kf = hist if hist is not None else self.next_keyframe(self.queue)
+        T_cw = pose_inverse(kf.T_wc)
+        leaves = {p: getattr(gm, p).detach().requires_grad_(True) for p in PARAM_FIELDS}
+        stale = None if hist is not None else st.loss_maps.get(kf.stamp_ns)
+        out = st.rasterize(gm, T_cw, kf.camera, sample_ratio=cfg.sample_ratio, loss_map=stale, **leaves)
+        terms: dict = {}
+        loss = self.losses(out, kf, terms)
+        l1 = terms.pop("l1_map")
+        if cfg.sample_ratio < 1.0:
+            # per tile, the pixels with the highest colour error L_rgb(u) (the paper's per-pixel
+            # loss, also the error score's map); ranking by every term's share was measured worse
+            out.set_sample_map(l1)
+        loss.backward()
+        terms["psnr"] = -10 * math.log10(max(float((out.color.detach().clamp(0, 1) - kf.image).pow(2).mean()), 1e-12))
+        with torch.no_grad():
+            if hist is None:
+                # score bookkeeping (window keyframes only; error w.r.t. the last loss map)
+                st.loss_maps[kf.stamp_ns] = l1.to(torch.float32)
+                self.scores.step_post_backward(gm, kf.stamp_ns, out)
+            self._adam_step(gm, leaves, out)
+            st.render_count += 1
+            st.gm = self.scores.after_train_step(st.gm, st.render_count, st.loss_maps)
+        return terms
+
+    def _adam_step(self, gm: GaussianMap, leaves: dict[str, torch.Tensor], out) -> None:
+        """Sparse Adam on the unstable Gaussians the render reached (``radii > 0``); non-finite
+        gradient entries are zeroed (and counted) so a degenerate splat cannot poison the map."""
+        cfg = self.st.cfg
+        rows = ((out.radii > 0).to(self.st.device) & ~gm.stable).nonzero()[:, 0]
+        if not rows.numel():
+            return
+        gm.adam_step[rows] += 1
+        lrs = self.lr_columns()
+        betas = (cfg.adam_betas[0], cfg.adam_betas[1])
+        for p in PARAM_FIELDS:
+            g = leaves[p].grad
+            if g is None:
+                continue
+            bad = ~torch.isfinite(g)
+            if bool(bad.any()):
+                self.st.counters["nonfinite_grads"] += int(bad.reshape(len(g), -1).any(1).sum())
+                g = torch.where(bad, torch.zeros((), dtype=g.dtype), g)
+            sparse_adam_step_fast(getattr(gm, p), g, getattr(gm, f"m_{p}"), getattr(gm, f"v_{p}"),
+                                  gm.adam_step, rows, lrs[p], betas, cfg.adam_eps)
+
+    def lr_columns(self) -> dict[str, np.ndarray]:
+        """Learning rate per column of each parameter viewed as (N, D) (per Adam step; means in m,
+        log-scales in log units, opacities in logits; higher SH bands at a twentieth of the DC)."""
+        cfg = self.st.cfg
+        lr_means = cfg.lr_means * (cfg.lr_means_outdoor_factor if cfg.outdoor else 1.0)
+        k = (cfg.sh_degree + 1) ** 2
+        lr_sh = np.full((k, 3), cfg.lr_sh / 20.0)
+        lr_sh[0] = cfg.lr_sh
+        return dict(means=np.full(3, lr_means), quats=np.full(4, cfg.lr_quats), log_scales=np.full(2, cfg.lr_scales),
+                    opacity_logits=np.full(1, cfg.lr_opacity), sh=lr_sh.reshape(-1))
