@@ -45,5 +45,7 @@ setup(
             "vings = vings_ros.cli:main",
             *_registry().console_scripts(),
         ],
+        # params sections and node blocks the library's params reader accepts besides its own
+        "vings.params_sections": ["vings_ros = vings_ros.registry:params_sections"],
     },
 )

@@ -20,7 +20,9 @@ import contextlib
 import contextvars
 import dataclasses
 import enum
+import functools
 import importlib
+import importlib.metadata
 import math
 import os
 import re
@@ -66,9 +68,36 @@ class ParamsLayout:
     nodes: tuple[str, ...] = ()
 
 
-#: the layout a reader uses when its caller names none: see :func:`params_layout`
-_LAYOUT: contextvars.ContextVar[ParamsLayout] = contextvars.ContextVar(
-    "vings_params_layout", default=ParamsLayout(tuple(LIBRARY_SECTIONS)))
+#: entry-point group through which an installed application (the ROS graph: vings_ros) names the
+#: params sections and node blocks of its own that a params file may hold besides the library's
+PARAMS_SECTIONS_GROUP = "vings.params_sections"
+
+
+@functools.lru_cache(maxsize=1)
+def installed_layout() -> ParamsLayout:
+    """The library's sections plus those every installed application declares (entry points of
+    :data:`PARAMS_SECTIONS_GROUP`: a callable returning ``{"sections": (...), "nodes": (...)}``)."""
+    sections, nodes = list(LIBRARY_SECTIONS), []
+    for ep in importlib.metadata.entry_points(group=PARAMS_SECTIONS_GROUP):
+        try:
+            more = ep.load()()
+        except Exception as e:  # noqa: BLE001 - a broken plug-in names itself, it does not crash the reader
+            raise ConfigError(f"params sections of {ep.value} ({PARAMS_SECTIONS_GROUP}) could not be "
+                              f"loaded: {type(e).__name__}: {e}") from None
+        sections += list(more.get("sections", ()))
+        nodes += list(more.get("nodes", ()))
+    return ParamsLayout(tuple(dict.fromkeys(sections)), tuple(dict.fromkeys(nodes)))
+
+
+#: the layout a reader uses when its caller names none (None: :func:`installed_layout`); see
+#: :func:`params_layout`
+_LAYOUT: contextvars.ContextVar[Optional[ParamsLayout]] = contextvars.ContextVar("vings_params_layout",
+                                                                                 default=None)
+
+
+def _active_layout() -> ParamsLayout:
+    layout = _LAYOUT.get()
+    return installed_layout() if layout is None else layout
 
 
 @contextlib.contextmanager
@@ -111,7 +140,7 @@ def read_params_file(path: str | os.PathLike, sections: Optional[Iterable[str]] 
     the active :class:`ParamsLayout` (:func:`params_layout`; the library's sections and ``/**``
     alone otherwise). Every block must have a ``ros__parameters`` mapping. Lists rcl cannot hold
     (mixed types, empty) are refused in either case."""
-    layout = _LAYOUT.get()
+    layout = _active_layout()
     sections = tuple(layout.sections if sections is None else sections)
     ours = ("**", *(layout.nodes if nodes is None else nodes))
     path = Path(path)

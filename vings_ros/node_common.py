@@ -41,10 +41,10 @@ def graph_layout(extra: Iterable[NodeSpec] = ()) -> ParamsLayout:
     """What the graph's params file holds: the shared section ``ros``, one section per node with
     settings (named after the node), the library sections; the node blocks of every registry node
     (and of ``extra``) are read besides ``/**``."""
-    specs = _node_specs(extra)
-    return ParamsLayout(sections=(registry.SHARED_SECTION, *(s.name for s in specs if s.config),
-                                  *LIBRARY_SECTIONS),
-                        nodes=tuple(s.name for s in specs))
+    own = registry.params_sections()
+    more = [s for s in extra if s.name not in own["nodes"]]
+    return ParamsLayout(sections=(*own["sections"], *(s.name for s in more if s.config), *LIBRARY_SECTIONS),
+                        nodes=(*own["nodes"], *(s.name for s in more)))
 
 
 def section_classes(extra: Iterable[NodeSpec] = ()) -> dict[str, type]:

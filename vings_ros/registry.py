@@ -72,3 +72,12 @@ def node_names() -> tuple[str, ...]:
 def console_scripts() -> list[str]:
     """``setup.py`` console scripts of the nodes: ``NAME = MODULE:main``."""
     return [f"{n.name} = {n.module}:main" for n in NODES]
+
+
+def params_sections() -> dict[str, tuple[str, ...]]:
+    """The graph's own params sections and node blocks, for the library's params reader: the
+    ``vings.params_sections`` entry point of setup.py, so that ``vings_core`` (which knows no node)
+    accepts the shipped params file: ``sections``: the shared section and every node's settings
+    section; ``nodes``: the node blocks read besides ``/**``."""
+    return {"sections": (SHARED_SECTION, *(n.name for n in NODES if n.config)), "nodes": node_names()}
+

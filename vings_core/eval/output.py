@@ -285,6 +285,12 @@ class RunOutput:
         atomic_write_text(self.metrics_path, json.dumps(m, indent=2, allow_nan=False) + "\n")
         return m
 
+    def write_json(self, name: str, data: dict) -> Path:
+        """Write a further JSON file of the run (``profile.json``) into the output folder, atomically."""
+        path = self.out_dir / name
+        atomic_write_text(path, json.dumps(data, indent=2, allow_nan=False) + "\n")
+        return path
+
     def read_metrics(self) -> dict:
         """The current ``metrics.json`` (a template if absent)."""
         if not self.metrics_path.is_file():

@@ -23,15 +23,18 @@ def register(subparsers) -> None:
                    help="deterministic: the mapper finishes each keyframe before tracking goes on")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.add_argument("--json", action="store_true", help="print metrics.json as one JSON line at the end")
+    p.add_argument("--profile", action="store_true",
+                   help="time every stage and step (docs/performance.md); writes profile.json and prints the table")
     add_source_arguments(p)
     p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
-    from vings_core.config import ConfigError, params_layout
+    from vings_core.config import ConfigError
     from vings_core.pipeline import RunConfig, SlamRunner, open_working_source
+    from vings_core.profiling import PROFILE, format_table
 
-    from ..node_common import check_params_file, graph_layout
+    from ..node_common import check_params_file
 
     if not str(args.out).strip():
         raise ConfigError("--out: give an output folder (an empty path would write into the current folder)")
@@ -42,10 +45,14 @@ def run(args: argparse.Namespace) -> int:
     source = open_working_source(args.source, source_options(args), cfg.width, cfg.height)
     for w in source.warnings:
         print(f"vings run: warning: {w}", file=sys.stderr)
-    with params_layout(graph_layout()):     # the runner reads the stages' sections of the graph's file
-        runner = SlamRunner(source, args.out, params_file=args.params, run_cfg=cfg,
-                            progress=not args.no_progress)
+    runner = SlamRunner(source, args.out, params_file=args.params, run_cfg=cfg, progress=not args.no_progress)
+    if args.profile:
+        PROFILE.enable()
     metrics = runner.run()
+    if args.profile:
+        rows = PROFILE.table(metrics.get("wall_s"))
+        runner.out.write_json("profile.json", {"wall_s": metrics.get("wall_s"), "steps": rows})
+        print(format_table(rows))
     print(f"outputs in {runner.out.out_dir}: trajectory.tum keyframes.tum map.ply checkpoint.pt "
           f"metrics.json renders/")
     if args.json:
