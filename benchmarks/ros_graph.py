@@ -174,7 +174,7 @@ def main() -> int:
     ap.add_argument("--writeback", default=None, choices=("none", "all", "consistent"),
                     help="exchange.mapper (the write-back policy for the mapper's refinements) for both the offline run and the graph")
     ap.add_argument("-p", "--param", action="append", default=[], metavar="SECTION.KEY=VALUE",
-                    help="extra ROS parameter for both graph nodes (e.g. ros.mapper_threads=1)")
+                    help="extra ROS parameter for both graph nodes (e.g. mapper_node.threads=1)")
     args = ap.parse_args()
     only = set(args.only.split(","))
 
@@ -265,9 +265,9 @@ def run_parity(lis, domain, mcap, gt, graph_params, ate_off, work, log) -> dict:
     """Back-pressure graph on the same MCAP as the offline --sync run."""
     lis.reset()
     ck = work / "parity_ckpt.npz"
-    fe = node_proc("vings_ros.frontend_node", domain, ["ros.queue_policy=backpressure"] + graph_params, log)
+    fe = node_proc("vings_ros.frontend_node", domain, ["frontend_node.queue_policy=backpressure"] + graph_params, log)
     ma = node_proc("vings_ros.mapper_node", domain, MAPPING + graph_params +
-                   [f"ros.checkpoint_path={ck}", "ros.resume=false"], log)
+                   [f"mapper_node.checkpoint_path={ck}", "mapper_node.resume=false"], log)
     lis.wait_for_graph()
     t0 = time.perf_counter()
     replay(mcap, domain, ["--rate", "0", "--wait-for-graph"], log)
@@ -291,7 +291,7 @@ def run_live(lis, domain, mcap, graph_params, work, log) -> dict:
     """20 Hz replay without back-pressure, keep-newest queue."""
     lis.reset()
     pub_log = work / "publish_log.csv"
-    fe = node_proc("vings_ros.frontend_node", domain, ["ros.queue_policy=keep_newest"] + graph_params, log)
+    fe = node_proc("vings_ros.frontend_node", domain, ["frontend_node.queue_policy=keep_newest"] + graph_params, log)
     ma = node_proc("vings_ros.mapper_node", domain, MAPPING + graph_params, log)
     lis.wait_for_graph()
     load = os.getloadavg()
@@ -327,9 +327,9 @@ def run_resume(lis, domain, mcap, stamps, graph_params, work, log) -> dict:
     ck = work / "resume_ckpt.npz"
     if ck.exists():
         ck.unlink()
-    mparams = MAPPING + graph_params + [f"ros.checkpoint_path={ck}", "ros.checkpoint_period_s=5.0",
-                                        "ros.checkpoint_every_keyframes=5", "ros.resume=true"]
-    fe = node_proc("vings_ros.frontend_node", domain, ["ros.queue_policy=backpressure"] + graph_params, log)
+    mparams = MAPPING + graph_params + [f"mapper_node.checkpoint_path={ck}", "mapper_node.checkpoint_period_s=5.0",
+                                        "mapper_node.checkpoint_every_keyframes=5", "mapper_node.resume=true"]
+    fe = node_proc("vings_ros.frontend_node", domain, ["frontend_node.queue_policy=backpressure"] + graph_params, log)
     ma = node_proc("vings_ros.mapper_node", domain, mparams, log)
     lis.wait_for_graph()
     half = stamps[len(stamps) // 2] - stamps[0]

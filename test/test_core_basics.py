@@ -259,13 +259,16 @@ def test_launch_never_overwrites_a_recording(tmp_path):
 
 
 def test_launch_reads_the_params_file_first_and_waits_for_the_mappers_drain(tmp_path):
-    from vings_ros.launch import MAPPER_SAVE_MARGIN_S, STOP_TIMEOUT_S, Launcher, LaunchOptions
+    from vings_ros import registry
+    from vings_ros.launch import SAVE_MARGIN_S, Launcher, LaunchOptions
     p = tmp_path / "p.yaml"
-    p.write_text("/**:\n  ros__parameters:\n    ros:\n      shutdown_timeout_s: 600.0\n")
-    assert Launcher(LaunchOptions(params_file=str(p))).stop_timeout["mapper_node"] == 600 + MAPPER_SAVE_MARGIN_S
-    assert Launcher(LaunchOptions()).stop_timeout == STOP_TIMEOUT_S
-    opt = LaunchOptions(params_file=str(p), extra_params={"ros.shutdown_timeout_s": 1000.0})
-    assert Launcher(opt).stop_timeout["mapper_node"] == 1000 + MAPPER_SAVE_MARGIN_S
+    p.write_text("/**:\n  ros__parameters:\n    mapper_node:\n      shutdown_timeout_s: 600.0\n")
+    assert Launcher(LaunchOptions(params_file=str(p))).stop_timeout["mapper_node"] == 600 + SAVE_MARGIN_S
+    defaults = Launcher(LaunchOptions()).stop_timeout
+    assert defaults["frontend_node"] == registry.node_spec("frontend_node").stop_timeout_s
+    assert defaults["mapper_node"] >= registry.node_spec("mapper_node").stop_timeout_s
+    opt = LaunchOptions(params_file=str(p), extra_params={"mapper_node.shutdown_timeout_s": 1000.0})
+    assert Launcher(opt).stop_timeout["mapper_node"] == 1000 + SAVE_MARGIN_S
     p.write_text("/**:\n  ros__parameters:\n    mapping: {background: [0, 1, 0.5]}\n")
     with pytest.raises(ConfigError, match="p.yaml: mapping.background"):
         Launcher(LaunchOptions(params_file=str(p)))

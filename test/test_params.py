@@ -36,12 +36,15 @@ def test_every_section_loads_into_its_config():
     assert set(configs) == set(section_classes())
     for sec, cls in section_classes().items():
         assert configs[sec] == cls(), sec
-    # the library reads the graph's file through the graph's layout (vings run's SlamRunner)
+    # the library reads the graph's file: the installed graph declares its sections to it (entry
+    # point vings.params_sections), which is the graph's layout
+    from vings_core.config import LIBRARY_SECTIONS, ParamsLayout, installed_layout
     from vings_core.mapping import MapperConfig
-    with params_layout(graph_layout()):
-        assert load_section(MapperConfig, "mapping", path) == MapperConfig()
-    with pytest.raises(ConfigError, match="unknown parameter section.*'frontend_node'"):
-        load_section(MapperConfig, "mapping", path)          # the library's own layout
+    assert set(installed_layout().sections) == set(graph_layout().sections)
+    assert load_section(MapperConfig, "mapping", path) == MapperConfig()
+    with params_layout(ParamsLayout(tuple(LIBRARY_SECTIONS))):     # the library's sections alone
+        with pytest.raises(ConfigError, match="unknown parameter section.*'frontend_node'"):
+            load_section(MapperConfig, "mapping", path)
 
 
 def test_params_writer_writes_enums_as_strings(tmp_path):

@@ -9,6 +9,7 @@ import numpy as np
 from .exchange import IncrementBatch, PoseFollower
 from .geometry import pose_increment
 from .types import Keyframe
+from .profiling import profiled
 
 #: the mapper's source name in the pose exchange
 MAPPER_SOURCE = "mapper"
@@ -18,6 +19,7 @@ def _differs(A: np.ndarray, B: np.ndarray, tol: float = 1e-12) -> bool:
     return bool(np.abs(np.asarray(A) - np.asarray(B)).max() > tol)
 
 
+@profiled("mapping", "keyframe (total)")
 def map_keyframe(mapper, follower: PoseFollower, kf: Keyframe, refine: bool = True, chunk: int = 0,
                  stop: Optional[Callable[[], bool]] = None) -> tuple[dict, Optional[IncrementBatch]]:
     """One mapping step: add the keyframe to ``mapper`` (:class:`~vings_core.mapping.Mapper`) and to

@@ -22,7 +22,7 @@ from msg_adapters.diagnostics import TRACKING_STATE_LEVEL
 from msg_adapters.image import FrameDecoder
 from msg_adapters.imu import msg_to_imu_sample
 from msg_adapters.keyframe import PART_TOPICS, keyframe_to_msgs
-from msg_adapters.exchange import batch_to_path, exchange_topic, path_to_batch
+from msg_adapters.exchange import batch_to_path, exchange_topic
 from msg_adapters.pose import estimate_to_odometry, trajectory_to_path
 from msg_adapters.stamps import header_ns
 from vings_core.errors import InputError
@@ -30,12 +30,12 @@ from vings_core.frontend import Frontend, FrontendConfig
 from vings_core.frontend.flow import make_flow_estimator
 from vings_core.io.calib_yaml import is_rectified_topic, load_calibration_yaml
 from vings_core.io.undistort import Undistorter
-from vings_core.exchange import ExchangeConfig, IncrementBatch, PoseKeeper
+from vings_core.exchange import ExchangeConfig, PoseKeeper
 from vings_core.exchange.config import KEEPER
 from vings_core.types import CameraModel, Frame, TrackState
 
 from . import registry
-from .node_base import Level, NodeStatus, StageNode
+from .node_base import BatchInbox, Level, NodeStatus, StageNode
 from .node_common import RateMeter, worth_reporting as _report
 from .node_config import FrontendNodeConfig, QueuePolicy
 
@@ -52,6 +52,7 @@ class FrontendNode(StageNode):
 
     def setup(self) -> None:
         self.fcfg: FrontendConfig = self.config("frontend")
+        self._exchange_setup()      # before a calibration file makes the front end (and its keeper)
         self.raw_camera: Optional[CameraModel] = None
         self.undist: Optional[Undistorter] = None
         self.frontend: Optional[Frontend] = None
@@ -94,7 +95,6 @@ class FrontendNode(StageNode):
                        for p, type_ in (("image", Image), ("depth", Image), ("inv_depth_var", Image),
                                         ("pose", PoseStamped), ("camera_info", CameraInfo))}
         self.pub_ack = self.create_publisher(Header, T.PROCESSED_TOPIC, sq(T.ACK_DEPTH))
-        self._exchange_setup()
         self._last_path_pub = 0.0
 
     def ready_message(self) -> str:
@@ -261,29 +261,14 @@ class FrontendNode(StageNode):
 
     def _exchange_setup(self) -> None:
         self.xcfg: ExchangeConfig = self.config("exchange")
-        self._incoming: list[IncrementBatch] = []
-        self._lock = threading.Lock()
         self.keeper: Optional[PoseKeeper] = None       # made with the front end (needs the camera)
-        qos = T.sensor_qos(T.POSE_EXCHANGE_DEPTH)
-        for writer in self.xcfg.writers():
-            self.create_subscription(Path, exchange_topic(writer),
-                                     lambda m, w=writer: self._exchange_on_message(w, m), qos)
-        self.pub_exchange = self.create_publisher(Path, exchange_topic(KEEPER), qos)
-
-    def _exchange_on_message(self, writer: str, msg: Path) -> None:
-        try:
-            batch = path_to_batch(msg, writer)
-        except InputError as e:
-            self.get_logger().warning(f"ignored a malformed pose-exchange message: {e}")
-            return
-        with self._lock:
-            self._incoming.append(batch)
+        self.inbox = BatchInbox(self, self.xcfg.writers())
+        self.pub_exchange = self.create_publisher(Path, exchange_topic(KEEPER),
+                                                  T.sensor_qos(T.POSE_EXCHANGE_DEPTH))
 
     def _exchange_receive(self) -> None:
         """The writers' batches received since the last frame -> their write-back policies."""
-        with self._lock:
-            pending, self._incoming = self._incoming, []
-        for batch in pending:
+        for batch in self.inbox.take():
             self.keeper.receive(batch)
 
     def _exchange_send(self, seq_hint: int = 0) -> None:

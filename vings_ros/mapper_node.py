@@ -28,7 +28,7 @@ from msg_adapters.image import float_image_to_msg, image_to_msg, rgb_float_to_ui
 from msg_adapters.keyframe import PART_TOPICS, KeyframeAssembler
 from msg_adapters.markers import keyframe_frustums_marker, marker_array, trajectory_marker
 from msg_adapters.pointcloud import points_to_pointcloud2
-from msg_adapters.exchange import batch_to_path, exchange_topic, path_to_batch
+from msg_adapters.exchange import batch_to_path, exchange_topic
 from msg_adapters.pose import trajectory_to_path
 from vings_core.errors import InputError
 from vings_core.exchange import IncrementBatch, PoseFollower
@@ -38,7 +38,7 @@ from vings_core.stages import MAPPER_SOURCE, map_keyframe
 from vings_core.types import Keyframe, Trajectory
 
 from . import registry
-from .node_base import Level, NodeStatus, StageNode
+from .node_base import BatchInbox, Level, NodeStatus, StageNode
 from .node_common import RateMeter, worth_reporting
 from .node_config import MapperNodeConfig, QueuePolicy
 
@@ -231,11 +231,9 @@ class MapperNode(StageNode):
 
     def _exchange_setup(self) -> None:
         self.follower = PoseFollower(MAPPER_SOURCE, self)
-        self._incoming: list[IncrementBatch] = []
-        self._lock = threading.Lock()
-        qos = T.sensor_qos(T.POSE_EXCHANGE_DEPTH)
-        self.create_subscription(Path, exchange_topic(KEEPER), self._exchange_on_message, qos)
-        self.pub_exchange = self.create_publisher(Path, exchange_topic(MAPPER_SOURCE), qos)
+        self.inbox = BatchInbox(self, (KEEPER,))
+        self.pub_exchange = self.create_publisher(Path, exchange_topic(MAPPER_SOURCE),
+                                                  T.sensor_qos(T.POSE_EXCHANGE_DEPTH))
 
     def apply_increments(self, increments: dict[int, np.ndarray]) -> None:
         """The follower's moves, applied to the map (it is the follower's pose owner)."""
@@ -245,19 +243,8 @@ class MapperNode(StageNode):
     def _exchange_resumed(self, mapper: Mapper) -> None:
         self.follower.resumed(mapper.keyframe_poses())
 
-    def _exchange_on_message(self, msg: Path) -> None:
-        try:
-            batch = path_to_batch(msg, KEEPER)
-        except InputError as e:     # a bad message is reported, the node keeps running
-            self.get_logger().warning(f"ignored a malformed pose-exchange message: {e}")
-            return
-        with self._lock:
-            self._incoming.append(batch)
-
     def _exchange_receive(self) -> None:
-        with self._lock:
-            pending, self._incoming = self._incoming, []
-        for batch in pending:
+        for batch in self.inbox.take():
             self.follower.receive(batch)
 
     def _exchange_send(self, batch: Optional[IncrementBatch]) -> None:

@@ -39,15 +39,18 @@ import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, ClassVar, Optional
+from typing import Any, Callable, ClassVar, Iterable, Optional
 
 from diagnostic_msgs.msg import DiagnosticArray
+from nav_msgs.msg import Path as PathMsg
 from rclpy.node import Node
 
 from msg_adapters import topics as T
 from msg_adapters.diagnostics import diagnostic_array, make_status
+from msg_adapters.exchange import exchange_topic, path_to_batch
 from vings_core.config import LIBRARY_SECTIONS, config_class
-from vings_core.errors import ConfigError, VingsError
+from vings_core.errors import ConfigError, InputError, VingsError
+from vings_core.exchange import IncrementBatch
 from vings_core.util import check_output_file, remove_stale_temps
 
 from .node_common import (InputQueue, Worker, check_parameters, graph_layout, node_sections,
@@ -71,6 +74,34 @@ class NodeStatus:
     level: Level
     message: str
     values: dict[str, Any] = field(default_factory=dict)
+
+
+class BatchInbox:
+    """Pose-exchange batches of ``sources`` (``/vings/exchange/<source>``), received on the executor
+    thread and taken by the worker (:meth:`take`); a malformed one is reported and skipped."""
+
+    def __init__(self, node: Node, sources: Iterable[str]) -> None:
+        self._node = node
+        self._items: list[IncrementBatch] = []
+        self._lock = threading.Lock()
+        qos = T.sensor_qos(T.POSE_EXCHANGE_DEPTH)
+        for source in sources:
+            node.create_subscription(PathMsg, exchange_topic(source), lambda m, s=source: self._on(s, m), qos)
+
+    def _on(self, source: str, msg: PathMsg) -> None:
+        try:
+            batch = path_to_batch(msg, source)
+        except InputError as e:
+            self._node.get_logger().warning(f"ignored a malformed pose-exchange message: {e}")
+            return
+        with self._lock:
+            self._items.append(batch)
+
+    def take(self) -> list[IncrementBatch]:
+        """The batches received since the last call, in arrival order."""
+        with self._lock:
+            items, self._items = self._items, []
+        return items
 
 
 class StageNode(Node):

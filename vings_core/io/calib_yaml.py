@@ -232,6 +232,23 @@ def parse_calibration(doc: dict, where: str, image_topic: Optional[str] = None) 
     with several cameras gives the one whose ``rostopic`` is ``image_topic`` (cam0 without a
     topic; an InputError when none matches)."""
     parts = CalibParts()
+    _parse_imu_parts(doc, parts, where)
+    if "T_bc" in doc:                                             # VINGS (also without camera)
+        parts.T_bc = _rigid(_matrix(doc["T_bc"], 4, where, "T_bc"), where, "T_bc")
+    for layout in (_vings_camera, _kalibr_camera_parts, _asl_camera, _camera_info_camera, _orbslam_camera):
+        if layout(doc, parts, where, image_topic):
+            return parts
+    if "T_BS" in doc:  # an IMU-only ASL sensor.yaml: T_BS is IMU-to-body (kept by the caller)
+        return parts
+    if parts.noise or parts.T_bc is not None:
+        return parts
+    raise InputError(f"{where}: no camera calibration found (expected a VINGS 'camera:' block, "
+                     f"EuRoC 'intrinsics', Kalibr 'cam0', ROS 'camera_matrix' or ORB-SLAM "
+                     f"'Camera.fx' keys)")
+
+
+def _parse_imu_parts(doc: dict, parts: CalibParts, where: str) -> None:
+    """IMU noise, rate, presence and gravity, from the top level or an ``imu0`` / ``imu`` block."""
     flat = dict(doc)
     for sub in ("imu0", "imu"):
         if isinstance(doc.get(sub), dict):
@@ -253,64 +270,79 @@ def parse_calibration(doc: dict, where: str, image_topic: Optional[str] = None) 
     if "gravity" in doc and isinstance(doc["gravity"], (int, float)):
         parts.gravity = float(doc["gravity"])
 
-    if "T_bc" in doc:                                             # VINGS (also without camera)
-        parts.T_bc = _rigid(_matrix(doc["T_bc"], 4, where, "T_bc"), where, "T_bc")
-    if isinstance(doc.get("camera"), dict):                       # VINGS
-        c = doc["camera"]
-        missing = [k for k in ("width", "height", "fx", "fy", "cx", "cy") if k not in c]
-        if missing:
-            raise InputError(f"{where}: camera block lacks {', '.join(missing)}")
-        model = distortion_model_name(c.get("distortion_model", "none"), where)
-        parts.camera = make_camera(c["width"], c["height"], c["fx"], c["fy"], c["cx"], c["cy"],
-                                   model, c.get("distortion", []), where)
-        return parts
-    if isinstance(doc.get("cam0"), dict):                         # Kalibr camchain
-        name = _kalibr_camera(doc, where, image_topic)
-        c = doc[name]
-        parts.camera = _camera_from_asl(c, where, coeff_key="distortion_coeffs")
-        if "T_cam_imu" in c:
-            T = _rigid(_matrix(c["T_cam_imu"], 4, where, f"{name}.T_cam_imu"), where, f"{name}.T_cam_imu")
-            parts.T_bc = np.linalg.inv(T)
-        return parts
-    if "intrinsics" in doc:                                       # EuRoC/ASL sensor.yaml
-        parts.camera = _camera_from_asl(doc, where, coeff_key="distortion_coefficients")
-        if "T_BS" in doc:
-            parts.T_bc = _rigid(_matrix(doc["T_BS"], 4, where, "T_BS"), where, "T_BS")
-        return parts
-    if "camera_matrix" in doc:                                    # ROS camera_info YAML
-        K = _matrix(doc["camera_matrix"], 3, where, "camera_matrix")
-        model = distortion_model_name(doc.get("distortion_model", "plumb_bob"), where)
-        d = doc.get("distortion_coefficients", [])
-        d = d.get("data", []) if isinstance(d, dict) else d
-        for k in ("image_width", "image_height"):
-            if k not in doc:
-                raise InputError(f"{where}: camera_info YAML lacks {k}")
-        parts.camera = make_camera(doc["image_width"], doc["image_height"], K[0, 0], K[1, 1],
-                                   K[0, 2], K[1, 2], model, d, where)
-        return parts
+
+def _vings_camera(doc: dict, parts: CalibParts, where: str, image_topic: Optional[str]) -> bool:
+    """VINGS ``camera:`` block."""
+    if not isinstance(doc.get("camera"), dict):
+        return False
+    c = doc["camera"]
+    missing = [k for k in ("width", "height", "fx", "fy", "cx", "cy") if k not in c]
+    if missing:
+        raise InputError(f"{where}: camera block lacks {', '.join(missing)}")
+    model = distortion_model_name(c.get("distortion_model", "none"), where)
+    parts.camera = make_camera(c["width"], c["height"], c["fx"], c["fy"], c["cx"], c["cy"],
+                               model, c.get("distortion", []), where)
+    return True
+
+
+def _kalibr_camera_parts(doc: dict, parts: CalibParts, where: str, image_topic: Optional[str]) -> bool:
+    """Kalibr camchain (``cam0``, ...; the camera of ``image_topic``)."""
+    if not isinstance(doc.get("cam0"), dict):
+        return False
+    name = _kalibr_camera(doc, where, image_topic)
+    c = doc[name]
+    parts.camera = _camera_from_asl(c, where, coeff_key="distortion_coeffs")
+    if "T_cam_imu" in c:
+        T = _rigid(_matrix(c["T_cam_imu"], 4, where, f"{name}.T_cam_imu"), where, f"{name}.T_cam_imu")
+        parts.T_bc = np.linalg.inv(T)
+    return True
+
+
+def _asl_camera(doc: dict, parts: CalibParts, where: str, image_topic: Optional[str]) -> bool:
+    """EuRoC/ASL ``sensor.yaml`` (``intrinsics``, ``T_BS``)."""
+    if "intrinsics" not in doc:
+        return False
+    parts.camera = _camera_from_asl(doc, where, coeff_key="distortion_coefficients")
+    if "T_BS" in doc:
+        parts.T_bc = _rigid(_matrix(doc["T_BS"], 4, where, "T_BS"), where, "T_BS")
+    return True
+
+
+def _camera_info_camera(doc: dict, parts: CalibParts, where: str, image_topic: Optional[str]) -> bool:
+    """ROS camera_info YAML (``camera_matrix``)."""
+    if "camera_matrix" not in doc:
+        return False
+    K = _matrix(doc["camera_matrix"], 3, where, "camera_matrix")
+    model = distortion_model_name(doc.get("distortion_model", "plumb_bob"), where)
+    d = doc.get("distortion_coefficients", [])
+    d = d.get("data", []) if isinstance(d, dict) else d
+    for k in ("image_width", "image_height"):
+        if k not in doc:
+            raise InputError(f"{where}: camera_info YAML lacks {k}")
+    parts.camera = make_camera(doc["image_width"], doc["image_height"], K[0, 0], K[1, 1],
+                               K[0, 2], K[1, 2], model, d, where)
+    return True
+
+
+def _orbslam_camera(doc: dict, parts: CalibParts, where: str, image_topic: Optional[str]) -> bool:
+    """ORB-SLAM settings (``Camera.fx`` / ``Camera1.fx``, ``Tbc``)."""
     pre = next((p for p in ("Camera1.", "Camera.") if f"{p}fx" in doc), None)
-    if pre is not None:                                           # ORB-SLAM settings
-        equi = str(doc.get("Camera.type", "")).strip('"').lower() in ("kannalabrandt8", "fisheye")
-        names = ("k1", "k2", "k3", "k4") if equi else ("k1", "k2", "p1", "p2", "k3")
-        d = [float(doc.get(f"{pre}{n}", 0.0)) for n in names]
-        w = doc.get("Camera.width", doc.get(f"{pre}width"))
-        h = doc.get("Camera.height", doc.get(f"{pre}height"))
-        if w is None or h is None:
-            raise InputError(f"{where}: ORB-SLAM settings lack Camera.width/Camera.height")
-        parts.camera = make_camera(w, h, doc[f"{pre}fx"], doc.get(f"{pre}fy", doc[f"{pre}fx"]),
-                                   doc[f"{pre}cx"], doc[f"{pre}cy"],
-                                   "equidistant" if equi else "radtan", d, where)
-        for k in ("IMU.T_b_c1", "Tbc"):
-            if k in doc:
-                parts.T_bc = _rigid(_matrix(doc[k], 4, where, k), where, k)
-        return parts
-    if "T_BS" in doc:  # an IMU-only ASL sensor.yaml: T_BS is IMU-to-body (kept by the caller)
-        return parts
-    if parts.noise or parts.T_bc is not None:
-        return parts
-    raise InputError(f"{where}: no camera calibration found (expected a VINGS 'camera:' block, "
-                     f"EuRoC 'intrinsics', Kalibr 'cam0', ROS 'camera_matrix' or ORB-SLAM "
-                     f"'Camera.fx' keys)")
+    if pre is None:
+        return False
+    equi = str(doc.get("Camera.type", "")).strip('"').lower() in ("kannalabrandt8", "fisheye")
+    names = ("k1", "k2", "k3", "k4") if equi else ("k1", "k2", "p1", "p2", "k3")
+    d = [float(doc.get(f"{pre}{n}", 0.0)) for n in names]
+    w = doc.get("Camera.width", doc.get(f"{pre}width"))
+    h = doc.get("Camera.height", doc.get(f"{pre}height"))
+    if w is None or h is None:
+        raise InputError(f"{where}: ORB-SLAM settings lack Camera.width/Camera.height")
+    parts.camera = make_camera(w, h, doc[f"{pre}fx"], doc.get(f"{pre}fy", doc[f"{pre}fx"]),
+                               doc[f"{pre}cx"], doc[f"{pre}cy"],
+                               "equidistant" if equi else "radtan", d, where)
+    for k in ("IMU.T_b_c1", "Tbc"):
+        if k in doc:
+            parts.T_bc = _rigid(_matrix(doc[k], 4, where, k), where, k)
+    return True
 
 
 def _camera_from_asl(c: dict, where: str, coeff_key: str) -> CameraModel:

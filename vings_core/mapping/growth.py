@@ -22,6 +22,7 @@ from .init import (depth_normals, empty_mask, fill_depth, gaussians_from_pixels,
                    usable_depth_mask)
 from .losses import l1_map
 from .state import MapState
+from ..profiling import profiled
 
 
 def check_keyframe(kf: Keyframe, known: dict[int, object], last_stamp: Optional[int],
@@ -70,6 +71,7 @@ def check_keyframe(kf: Keyframe, known: dict[int, object], last_stamp: Optional[
 
 
 @torch.no_grad()
+@profiled("mapping", "densify")
 def densify(st: MapState, kf: Keyframe) -> dict:
     """Delete the Gaussians that conflict with keyframe ``kf`` (:func:`conflicts`) and add new
     ones from its depth where the render's accumulated opacity is low (or the observed surface

@@ -25,6 +25,7 @@ from .config import RefineMode, RefineSolver
 from .gaussians import GaussianMap, quat_multiply
 from .state import MapState
 from .training import Trainer
+from ..profiling import profiled
 
 
 @dataclass
@@ -59,6 +60,7 @@ class PoseRefiner:
         """Start a new shuffled round (the window changed)."""
         self.queue = []
 
+    @profiled("mapping", "pose refinement")
     def run(self, mode: RefineMode, iters: int) -> dict[int, tuple[np.ndarray, np.ndarray]]:
         """``iters`` refinement renders in ``mode`` (single or multi); returns the pose changes
         ``{stamp: (T_old, T_new)}`` (``T_wc``) for the caller to commit, moving the Gaussians in

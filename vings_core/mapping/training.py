@@ -24,6 +24,7 @@ from .losses import (accumulation_loss, depth_loss, depth_weight, l1_map, normal
 from .optim import sparse_adam_step_fast
 from .score_manager import ScoreManager
 from .state import MapState
+from ..profiling import timed
 
 
 class Trainer:
@@ -133,24 +134,31 @@ class Trainer:
         T_cw = pose_inverse(kf.T_wc)
         leaves = {p: getattr(gm, p).detach().requires_grad_(True) for p in PARAM_FIELDS}
         stale = None if hist is not None else st.loss_maps.get(kf.stamp_ns)
-        out = st.rasterize(gm, T_cw, kf.camera, sample_ratio=cfg.sample_ratio, loss_map=stale, **leaves)
+        with timed("mapping", "render"):
+            out = st.rasterize(gm, T_cw, kf.camera, sample_ratio=cfg.sample_ratio, loss_map=stale, **leaves)
         terms: dict = {}
-        loss = self.losses(out, kf, terms)
+        with timed("mapping", "loss"):
+            loss = self.losses(out, kf, terms)
         l1 = terms.pop("l1_map")
         if cfg.sample_ratio < 1.0:
             # per tile, the pixels with the highest colour error L_rgb(u) (the paper's per-pixel
-            # loss, also the error score's map); ranking by every term's share was measured worse
+            # loss, also the error score's map); ranking by every term's share costs PSNR
+            # (docs/mapping.md, sampled backward)
             out.set_sample_map(l1)
-        loss.backward()
+        with timed("mapping", "backward"):
+            loss.backward()
         terms["psnr"] = -10 * math.log10(max(float((out.color.detach().clamp(0, 1) - kf.image).pow(2).mean()), 1e-12))
         with torch.no_grad():
             if hist is None:
                 # score bookkeeping (window keyframes only; error w.r.t. the last loss map)
                 st.loss_maps[kf.stamp_ns] = l1.to(torch.float32)
-                self.scores.step_post_backward(gm, kf.stamp_ns, out)
-            self._adam_step(gm, leaves, out)
+                with timed("mapping", "scores"):
+                    self.scores.step_post_backward(gm, kf.stamp_ns, out)
+            with timed("mapping", "optimiser step"):
+                self._adam_step(gm, leaves, out)
             st.render_count += 1
-            st.gm = self.scores.after_train_step(st.gm, st.render_count, st.loss_maps)
+            with timed("mapping", "scores"):
+                st.gm = self.scores.after_train_step(st.gm, st.render_count, st.loss_maps)
         return terms
 
     def _adam_step(self, gm: GaussianMap, leaves: dict[str, torch.Tensor], out) -> None:
