@@ -225,21 +225,6 @@ def test_overrides_rcl_would_ignore_are_refused_before_any_node_starts(tmp_path)
                                    "mapping.points_per_keyframe:=1e4"]) == 2
 
 
-STAND_IN_NODE = """
-import signal, sys, time
-from pathlib import Path
-log = Path(sys.argv[1])
-def stop(sig, frame):
-    with log.open("a") as f:
-        f.write(f"{time.monotonic():.6f} got {sig}\\n")
-    sys.exit(0)
-signal.signal(signal.SIGINT, stop)
-signal.signal(signal.SIGTERM, stop)
-log.write_text("started\\n")
-while True:
-    time.sleep(0.05)
-"""
-
 LAUNCH_CHILD = """
 import dataclasses
 from vings_ros import launch as L, registry
@@ -256,15 +241,11 @@ def test_launcher_stops_the_graph_in_order_when_its_terminal_closes(tmp_path):
     import subprocess
     import sys
     import time
-    for name in ("frontend_node", "mapper_node"):
-        (tmp_path / f"stand_in_{name}.py").write_text(
-            f"import runpy, sys\nsys.argv[1:] = [{str(tmp_path / (name + '.log'))!r}]\n"
-            f"runpy.run_path({str(tmp_path / 'stand_in.py')!r}, run_name='__main__')\n")
-    (tmp_path / "stand_in.py").write_text(STAND_IN_NODE)
+    from stand_in_nodes import write_stand_in_nodes
+    logs = write_stand_in_nodes(tmp_path, ("frontend_node", "mapper_node"))
     env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(tmp_path), str(Path(__file__).parents[1])]))
     p = subprocess.Popen([sys.executable, "-c", LAUNCH_CHILD], env=env, stdout=subprocess.PIPE,
                          stderr=subprocess.PIPE, text=True)
-    logs = [tmp_path / "frontend_node.log", tmp_path / "mapper_node.log"]
     t_end = time.monotonic() + 60
     while not all(f.exists() for f in logs) and time.monotonic() < t_end:
         time.sleep(0.1)

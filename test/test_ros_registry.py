@@ -109,21 +109,6 @@ def test_an_extra_registry_entry_is_listed_everywhere_without_editing_them(monke
     assert "later_node" not in default_nodes()
 
 
-STAND_IN_NODE = """
-import signal, sys, time
-from pathlib import Path
-log = Path(sys.argv[1])
-def stop(sig, frame):
-    with log.open("a") as f:
-        f.write(f"{time.monotonic():.6f} got {sig}\\n")
-    sys.exit(0)
-signal.signal(signal.SIGINT, stop)
-signal.signal(signal.SIGTERM, stop)
-log.write_text(f"{time.monotonic():.6f} started\\n")
-while True:
-    time.sleep(0.05)
-"""
-
 LAUNCH_CHILD = """
 import dataclasses
 from vings_ros import launch as L, registry
@@ -139,15 +124,11 @@ def test_vings_launch_starts_and_stops_an_extra_registry_node_in_order(tmp_path)
     """A node added to the registry (between front end and mapper) is started by the launcher
     (consumers first) and stopped after the front end, before the mapper."""
     names = ("frontend_node", "extra_node", "mapper_node")
-    (tmp_path / "stand_in.py").write_text(STAND_IN_NODE)
-    for name in names:
-        (tmp_path / f"stand_in_{name}.py").write_text(
-            f"import runpy, sys\nsys.argv[1:] = [{str(tmp_path / (name + '.log'))!r}]\n"
-            f"runpy.run_path({str(tmp_path / 'stand_in.py')!r}, run_name='__main__')\n")
+    from stand_in_nodes import write_stand_in_nodes
+    logs = write_stand_in_nodes(tmp_path, names)
     env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(tmp_path), str(REPO)]))
     p = subprocess.Popen([sys.executable, "-c", LAUNCH_CHILD], env=env, stdout=subprocess.PIPE,
                          stderr=subprocess.PIPE, text=True, start_new_session=True)
-    logs = [tmp_path / f"{n}.log" for n in names]
     t_end = time.monotonic() + 60
     while not all(f.exists() for f in logs) and time.monotonic() < t_end:
         time.sleep(0.1)
