@@ -167,7 +167,7 @@ def test_gauge_mask_rule():
     # pure rotation (or a tiny baseline) between the two oldest: the oldest pose with a baseline
     assert ids(BA.gauge_mask(_poses([0.0, 0.0, 0.1, 0.2, 0.3]), 2)) == [0, 2]
     assert ids(BA.gauge_mask(_poses([0.0, 1e-3, 0.0, 0.1, 0.2, 0.3]), 2)) == [0, 3]
-    # no baseline anywhere: today's behaviour
+    # no baseline anywhere: the oldest poses are held
     assert ids(BA.gauge_mask(_poses([0.0] * 5), 2)) == [0, 1]
     # more fixed poses: unchanged while one of them has a baseline
     assert ids(BA.gauge_mask(_poses([0.0, 0.0, 0.1, 0.2, 0.3]), 3)) == [0, 1, 2]

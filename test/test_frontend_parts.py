@@ -97,7 +97,7 @@ def test_joint_bilateral_upsample_matches_reference_and_respects_edges():
 def test_unobserved_cells_do_not_leak_whatever_their_fraction(frac):
     """Cells no residual observes have infinite variance (window_inv_depth_var): they take no part
     in the upsampling and a pixel next to one is unknown, the same with 30 % or 70 % of the frame
-    unobserved (a finite placeholder variance used to become the median above 50 % and leak into
+    unobserved (a finite placeholder variance would become the median above 50 % and leak into
     observed pixels)."""
     h, w, s = 6, 10, 8
     inv = np.full((h, w), 0.5, np.float32)

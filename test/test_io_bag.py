@@ -340,7 +340,7 @@ def test_missing_and_unreadable_bags(tmp_path):
 
 def test_mcap_with_a_non_ros_channel_names_it(tmp_path):
     """rosbags cannot open an MCAP that also holds e.g. a JSON channel (Foxglove annotations); the
-    error used to be "cannot open MCAP file: 'jsonschema'"."""
+    error names the non-ROS channels, not rosbags' bare "cannot open MCAP file: 'jsonschema'"."""
     import json
 
     from mcap.writer import Writer

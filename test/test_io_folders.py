@@ -15,8 +15,9 @@ from vings_core.io import (EurocSource, KittiSource, SourceOptions, TumSource, d
 
 # ------------------------------------------------------------------------------------------ EuRoC
 def test_body_ground_truth_without_extrinsic_is_refused_not_mapped_by_identity(tmp_path):
-    """EuRoC ground truth is of the body; a cam0/sensor.yaml without T_BS used to map it to cam0
-    by an assumed identity, silently putting the lever arm into every metric."""
+    """EuRoC ground truth is of the body; without T_BS in cam0/sensor.yaml there is no extrinsic, so
+    mapping it to cam0 is refused, not done through an identity (which would put the lever arm
+    into every metric)."""
     root = make_euroc(tmp_path / "seq", n=3)
     assert np.allclose(open_source(root).gt_camera_trajectory().poses,
                        open_source(root).ground_truth.right_multiply(T_BC).poses)

@@ -1277,7 +1277,7 @@ def test_history_spilled_to_disk_trains_and_checkpoints_exactly_as_in_memory(roo
         assert r1["index"] == r2["index"] and all(torch.equal(r1[k], r2[k]) for k in ("image", "depth", "valid"))
     spill = list((tmp_path / "spill").glob("vings_history_*/*.npz"))
     assert spill
-    # (checkpoints of earlier versions, history stacked per field: test_mapping_checkpoint.py)
+    # (checkpoints of older layout versions, history stacked per field: test_mapping_checkpoint.py)
     for m in (small, back, big):
         m.close()
     assert not any((tmp_path / "spill").glob("vings_history_*/*.npz"))

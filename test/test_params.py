@@ -234,8 +234,8 @@ print("rc", L.Launcher(L.LaunchOptions(nodes=["frontend_node", "mapper_node"])).
 
 
 def test_launcher_stops_the_graph_in_order_when_its_terminal_closes(tmp_path):
-    """SIGHUP (terminal or SSH session closed) used to kill the launcher alone and leave the nodes,
-    each in its own session, running without a parent; now it stops them like Ctrl-C."""
+    """SIGHUP (terminal or SSH session closed) stops the graph like Ctrl-C: the nodes, each in its
+    own session, must not outlive the launcher."""
     import os
     import signal
     import subprocess

@@ -136,7 +136,7 @@ class MapperConfig:
 
     seed: int = 0
 
-    # parameters of earlier versions, with what replaced them (the params loader names it)
+    # removed parameter names -> what replaces them (the params loader names it in its error)
     RENAMED: ClassVar[dict] = {
         "refine_lr_trans": "'refine_lr_trans_rel', a fraction of the window's median keyframe depth "
                            "per step instead of metres (3.5e-4 = 1 mm at 2.9 m)"}
