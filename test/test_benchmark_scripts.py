@@ -106,3 +106,20 @@ def test_harness_always_prints_one_json_line_naming_what_failed(capsys):
                           finish=lambda o: o.update(cleaned=True))
     last = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert last == {"a": {"x": 1}, "i": {"error": "interrupted (Ctrl-C)"}, "failed": ["i"], "cleaned": True}
+
+
+def test_stage_profile_reports_tracking_and_mapping_steps(capsys):
+    """A tiny profiled run: the table holds the tracking and mapping steps, nested totals hold
+    their parts, and the last line is one JSON object."""
+    _load("stage_profile").main(["--frames", "16", "--size", "128x96", "--sync"])
+    out = capsys.readouterr().out.strip().splitlines()
+    res = json.loads(out[-1])
+    (run,) = res["runs"]
+    steps = {(r["stage"], r["step"]): r for r in run["steps"]}
+    assert run["frames"] == 16
+    for key in [("tracking", "frame (total)"), ("tracking", "flow"), ("io", "read frame"), ("io", "write outputs")]:
+        assert steps[key]["calls"] >= 1, key
+    assert steps[("tracking", "frame (total)")]["calls"] == 16
+    assert run["keyframes"] >= 1
+    parts = sum(steps[("mapping", k)]["total_s"] for k in ("densify", "render", "loss", "backward", "pose refinement"))
+    assert 0 < parts <= steps[("mapping", "keyframe (total)")]["total_s"]

@@ -7,9 +7,9 @@ backward, optimiser step, scores, densify, pose refinement; I/O: reading frames,
 evaluation renders). Steps nest: `tracking / frame (total)` holds the tracking steps, `mapping /
 keyframe (total)` the mapping steps.
 
-    python benchmarks/profile.py                       # synthetic room, 80 frames, defaults
-    python benchmarks/profile.py --source ../shared/data/kitti07_160 --max-frames 60
-    python benchmarks/profile.py --sync                # mapper inline (no concurrency)
+    python benchmarks/stage_profile.py                       # synthetic room, 80 frames, defaults
+    python benchmarks/stage_profile.py --source ../shared/data/kitti07_160 --max-frames 60
+    python benchmarks/stage_profile.py --sync                # mapper inline (no concurrency)
 
 Without `--source` it generates the synthetic scene (`--scene`, `--frames`, seed 0) in a temporary
 folder first (not timed).
@@ -54,6 +54,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--source", action="append", help="recording (repeatable); default: a synthetic scene")
     ap.add_argument("--scene", default="room", help="synthetic scene without --source (room, street)")
     ap.add_argument("--frames", type=int, default=80, help="frames of the synthetic scene")
+    ap.add_argument("--size", default="376x240", help="WxH of the synthetic scene")
     ap.add_argument("--max-frames", type=int, default=0, help="frames read of each source (0 = all)")
     ap.add_argument("--sync", action="store_true", help="map each keyframe before the next frame")
     ap.add_argument("--params", default=None, help="params file (default: the built-in defaults)")
@@ -65,7 +66,8 @@ def main(argv: list[str] | None = None) -> int:
         if not sources:
             from vings_core.sim import generate
             sources = [Path(tmp) / args.scene]
-            generate(args.scene, sources[0], frames=args.frames, seed=0, mcap=False)
+            w, h = (int(v) for v in args.size.lower().split("x"))
+            generate(args.scene, sources[0], frames=args.frames, width=w, height=h, seed=0, mcap=False)
         runs = []
         for i, src in enumerate(sources):
             t0 = time.perf_counter()
@@ -75,7 +77,7 @@ def main(argv: list[str] | None = None) -> int:
             print(f"## {src} ({r['resolution'][0]}x{r['resolution'][1]}, {r['frames']} frames, "
                   f"{r['keyframes']} keyframes, {r['wall_s']:.1f} s, {r['fps']:.2f} FPS)", file=sys.stderr)
             print(format_table(r["steps"]), file=sys.stderr)
-    print(json.dumps({"benchmark": "profile", "cores": os.cpu_count(), "runs": runs}))
+    print(json.dumps({"benchmark": "stage_profile", "cores": os.cpu_count(), "runs": runs}))
     return 0
 
 
