@@ -16,6 +16,7 @@ $(STAMP): requirements.txt setup.py setup.cfg
 	$(VPY) -m pip install -q --upgrade pip
 	$(VPY) -m pip install -q -r requirements.txt
 	$(VPY) -m pip install -q --no-deps --no-build-isolation -e .
+	$(VPY) -m vings_core.warmup
 	rm -f $(VENV)/.installed-*
 	touch $(STAMP)
 

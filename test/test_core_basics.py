@@ -300,3 +300,9 @@ def test_rotation_angle_is_accurate_for_tiny_and_half_turn_angles():
     axis = np.array([0.3, -0.5, 0.8]) / np.linalg.norm([0.3, -0.5, 0.8])
     for a in (1e-10, 1e-8, 1e-4, 0.5, 3.0, np.pi):
         assert np.radians(rotation_angle_deg(np_so3_exp(axis * a))) == pytest.approx(a, rel=1e-9)
+
+
+def test_kernel_warm_up_exercises_the_mapping_kernels():
+    """`make install` compiles the numba kernels through this round (no stall in the first run)."""
+    from vings_core.warmup import warm_kernels
+    assert warm_kernels() > 0
