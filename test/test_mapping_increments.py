@@ -205,3 +205,35 @@ def test_refinement_policies_are_enums_that_load_from_strings(tmp_path):
     assert P == {} or all(np.array_equal(T, m.keyframe_poses()[s]) for s, T in P.items())
     m.refine_poses(2, mode=RefineMode.SINGLE)
     m.refine_poses(2, mode="multi")
+
+
+def test_a_scaled_increment_scales_the_keyframes_depth_maps(tmp_path):
+    """Depth follows the similarity (depth x s, inverse-depth variance / s^2): window keyframes at
+    once, history keyframes when training reads them, and across a checkpoint."""
+    import dataclasses
+    m = _mapper(tmp_path)
+    win = {kf.stamp_ns: (kf.depth.clone(), kf.inv_depth_var.clone() + 0.5) for kf in m.state.window}
+    for kf in m.state.window:
+        kf.inv_depth_var = win[kf.stamp_ns][1].clone()
+    hist = STAMPS[0]
+    assert hist in m.state.history and hist not in win
+    m.apply_increments({hist: _C(1.3), STAMPS[-1]: _C(0.8)})
+    kf = m.state.window_keyframe(STAMPS[-1])
+    d0, v0 = win[STAMPS[-1]]
+    assert torch.allclose(kf.depth, d0 * 0.8) and torch.allclose(kf.inv_depth_var, v0 / 0.64)
+    assert torch.equal(m.state.window_keyframe(STAMPS[1]).depth, win[STAMPS[1]][0])   # not moved
+    assert m.state.depth_scale == {hist: 1.3}
+    m.save_checkpoint(tmp_path / "c.npz")
+    m2 = Mapper.load_checkpoint(tmp_path / "c.npz")
+    assert m2.state.depth_scale == {hist: 1.3}
+    assert torch.equal(m2.state.window_keyframe(STAMPS[-1]).depth, kf.depth)
+    from vings_core.mapping.history import expand_keyframe
+    stored = m.state.history.peek(hist)
+    for mm in (m, m2):
+        mm.state.cfg = dataclasses.replace(mm.state.cfg, history_ratio=1.0, tau=1e3)
+        h = mm.trainer.history_keyframe()
+        assert h is not None and h.stamp_ns == hist
+        valid = h.depth > 0
+        plain = expand_keyframe(stored, hist, mm.keyframe_poses()[hist], mm.state.camera)
+        assert valid.any() and torch.allclose(h.depth[valid], plain.depth[valid] * 1.3)
+        mm.close()

@@ -11,7 +11,8 @@ Version 6 (:data:`CHECKPOINT_VERSION`, written) holds the entries
 * ``pose_adam/{stamps, m, v, steps, v_shared}`` and ``pose_gn/{stamps, steps}``: refinement state;
 * ``pchunk/count`` and per passive chunk ``pchunk/<k>/<field>``, ``pchunk/<k>/owners``,
   ``pchunk/<k>/owner_T`` (owner poses when stored) and ``pchunk/<k>/owner_s`` (pending scales);
-* ``hist/stamps``, ``hist/index`` and per history keyframe ``hist/<stamp>/<field>``.
+* ``hist/stamps``, ``hist/index`` and per history keyframe ``hist/<stamp>/<field>``;
+  ``hist/scale_stamps`` / ``hist/scale``: depth factors pending for history keyframes.
 
 Earlier versions are read through one migration per version, each turning a version's entries
 into the next one's (:data:`MIGRATIONS`):
@@ -93,6 +94,9 @@ def save_checkpoint(m: "Mapper", path: str | os.PathLike) -> None:
                 index.append(rec["index"])
             _write_npy(zf, "hist/stamps", np.array(saved, dtype=np.int64))
             _write_npy(zf, "hist/index", np.array(index, dtype=np.int64))
+            ds = sorted(m.state.depth_scale)
+            _write_npy(zf, "hist/scale_stamps", np.array(ds, dtype=np.int64))
+            _write_npy(zf, "hist/scale", np.array([m.state.depth_scale[s] for s in ds], dtype=np.float64))
     atomic_write(path, _w)
 
 
@@ -208,6 +212,7 @@ def _restore(m: "Mapper", z: "Entries", meta: dict, path: Path) -> None:
     st.rng.set_state(torch.from_numpy(z["rng_state"]))
     for s, ix in zip(z["hist/stamps"].tolist(), z["hist/index"].tolist()):
         st.history.put(int(s), {**{k: torch.from_numpy(z[f"hist/{s}/{k}"]) for k in HISTORY_FIELDS}, "index": int(ix)})
+    st.depth_scale = {int(s): float(k) for s, k in zip(z["hist/scale_stamps"].tolist(), z["hist/scale"].tolist())}
     ref = m.refiner
     ref.adam_v = np.array(z["pose_adam/v_shared"], dtype=np.float64)
     ref.adam = {int(s): (np.array(a), np.array(b), int(c)) for s, a, b, c in
@@ -334,9 +339,11 @@ def _v4_to_v5(z: Entries) -> None:
 
 
 def _v5_to_v6(z: Entries) -> None:
-    """No scale pending for any passive chunk's owners."""
+    """No scale pending for any passive chunk's owners, nor for any history keyframe's depth."""
     for k in range(int(z["pchunk/count"])):
         z.add(f"pchunk/{k}/owner_s", np.ones(len(z[f"pchunk/{k}/owners"]), dtype=np.float64))
+    z.add("hist/scale_stamps", np.zeros(0, dtype=np.int64))
+    z.add("hist/scale", np.zeros(0, dtype=np.float64))
 
 
 #: version -> the migration of its entries to the next version's

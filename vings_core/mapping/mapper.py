@@ -344,8 +344,23 @@ class Mapper:
                                         for s, (old, new) in changes.items()}, scaled)
             if scaled:
                 st.passive.rescale(scaled)
+                self._rescale_depths(scaled)
         else:
             st.passive.resnapshot(changes)
+
+    def _rescale_depths(self, scales: dict[int, float]) -> None:
+        """Keyframe depth maps follow a similarity of scale ``s``: depth times ``s``, inverse-depth
+        variance over ``s^2``; window keyframes now (new tensors, so cached loss inputs are rebuilt),
+        history keyframes when they are read (:attr:`MapState.depth_scale`)."""
+        st = self.state
+        for kf in st.window:
+            k = scales.get(kf.stamp_ns)
+            if k is not None:
+                kf.depth = kf.depth * k
+                kf.inv_depth_var = kf.inv_depth_var / (k * k)
+        for s, k in scales.items():
+            if s in st.history:
+                st.depth_scale[s] = st.depth_scale.get(s, 1.0) * k
 
     def _move_active_by_owner(self, deltas: dict[int, np.ndarray], scales: dict[int, float]) -> None:
         """Move each active Gaussian by its owner's world-frame motion in ``deltas`` (a similarity

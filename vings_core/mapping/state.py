@@ -45,6 +45,8 @@ class MapState:
     render_count: int = 0                # training renders so far (score clock)
     kf_count: int = 0
     loss_maps: dict[int, torch.Tensor] = field(default_factory=dict)  # last per-pixel L1 of window keyframes
+    #: history keyframes' depth factors not yet applied to their stored depth (similarity increments)
+    depth_scale: dict[int, float] = field(default_factory=dict)
     counters: dict[str, int] = field(default_factory=new_counters)
 
     @staticmethod

@@ -122,7 +122,14 @@ class Trainer:
             return None
         s = stamps[int(cand[int(torch.randint(len(cand), (), generator=st.rng))])]
         rec = st.history.get(s)     # None: its spill file was lost (reported); skip this turn
-        return None if rec is None else expand_keyframe(rec, s, st.poses[s], st.camera)
+        if rec is None:
+            return None
+        kf = expand_keyframe(rec, s, st.poses[s], st.camera)
+        k = st.depth_scale.get(s)
+        if k is not None:           # similarity increments since it left the window
+            kf.depth = kf.depth * k
+            kf.inv_depth_var = kf.inv_depth_var / (k * k)
+        return kf
 
     def step(self) -> dict:
         """One training iteration; returns its loss terms and the render's PSNR (dB)."""
