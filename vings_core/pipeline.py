@@ -249,6 +249,7 @@ class SlamRunner:
         self._kf_queued = (threading.Semaphore(self.cfg.max_mapper_lag)
                            if self.cfg.max_mapper_lag and not self.cfg.sync else None)
         self._lag_warned = False
+        self.light_keyframes = 0    # keyframes trained lightly to catch up (mapping.catch_up_backlog)
         # the pose exchange, as between the nodes: the front end keeps the poses, the mapper and the
         # further stages follow it
         self.xcfg = exchange_cfg or load_section(ExchangeConfig, "exchange", params_file)
@@ -260,8 +261,9 @@ class SlamRunner:
     # --------------------------------------------------------------------------- mapping side
 
     def _map_keyframe(self, kf: Keyframe) -> None:
-        _, batch = map_keyframe(self.mapper, self.follower, kf, refine=self.frontend is not None,
-                             chunk=10, stop=lambda: self._abort)
+        stats, batch = map_keyframe(self.mapper, self.follower, kf, refine=self.frontend is not None,
+                                    chunk=10, stop=lambda: self._abort, backlog=self._backlog())
+        self.light_keyframes += int(stats.get("light", False))
         if batch is not None:
             with self._lock:
                 self._to_keeper.append(batch)
@@ -270,6 +272,10 @@ class SlamRunner:
             # the previous run's checkpoint.pt stays until this run completes
             self.mapper.save_checkpoint(self.out.partial_checkpoint_path)
             self._partial_ckpt = True
+
+    def _backlog(self) -> int:
+        """Keyframes waiting for the mapper thread (0 in sync mode)."""
+        return sum(1 for m in list(self._queue.queue) if m is not None and m[0] == "kf")
 
     def _handle(self, kind: str, item: object) -> None:
         if kind == "kf":
@@ -527,6 +533,9 @@ class SlamRunner:
             st = self.keeper.stats
             log.info("pose write-back (mapper: %s): %d increments received, %d applied, %d refused",
                      self.xcfg.mapper, st["corrections"], st["applied"], st["rejected"])
+        if self.light_keyframes:
+            log.info("%d of %d keyframes trained lightly to keep up (mapping.catch_up_backlog)",
+                     self.light_keyframes, len(kf_traj))
         m.update(frames=n_frames, frames_tracked=len(traj), keyframes=len(kf_traj),
                  num_gaussians=int(self.mapper.num_gaussians))
         # with gt_poses the trajectory IS the ground truth: no ATE/RPE to report (null)

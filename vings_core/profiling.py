@@ -1,7 +1,7 @@
 """Where the time of a run goes: wall-clock timers per stage and step.
 
 ``with timed("tracking", "flow"): ...`` adds the block's wall time to the process-wide
-:data:`PROFILE` when it is enabled (``vings run --profile``, ``benchmarks/profile.py``); disabled,
+:data:`PROFILE` when it is enabled (``vings run --profile``, ``benchmarks/stage_profile.py``); disabled,
 a timer costs one attribute read. Steps nest (a step's time includes its sub-steps'); the table
 reports each (stage, step) pair with its calls, total, mean and share of the run's wall time.
 Thread-safe: the mapper thread and the tracking thread add to the same table.

@@ -21,15 +21,20 @@ def _differs(A: np.ndarray, B: np.ndarray, tol: float = 1e-12) -> bool:
 
 @profiled("mapping", "keyframe (total)")
 def map_keyframe(mapper, follower: PoseFollower, kf: Keyframe, refine: bool = True, chunk: int = 0,
-                 stop: Optional[Callable[[], bool]] = None) -> tuple[dict, Optional[IncrementBatch]]:
+                 stop: Optional[Callable[[], bool]] = None, backlog: int = 0) -> tuple[dict, Optional[IncrementBatch]]:
     """One mapping step: add the keyframe to ``mapper`` (:class:`~vings_core.mapping.Mapper`) and to
     its exchange ``follower``, train ``iters_per_keyframe`` iterations (in chunks of ``chunk`` when
     > 0, ending early once ``stop()`` is true: prompt shutdown), then (``refine``) refine the poses.
-    Returns the last training stats and the refinement as an increment batch for the keeper (None
-    when no pose moved), numbered at least the keyframe's stamp."""
+    ``backlog``: keyframes waiting behind this one; from ``catch_up_backlog`` on (when > 0) the
+    keyframe is trained lightly (``catch_up_iters``, no refinement) so the mapper catches up.
+    Returns the last training stats (``light``: whether it was trained lightly) and the refinement
+    as an increment batch for the keeper (None when no pose moved), numbered at least the
+    keyframe's stamp."""
     mapper.add_keyframe(kf)
     follower.keyframe_added(int(kf.stamp_ns), kf.T_wc.detach().cpu().numpy().astype(np.float64))
-    iters = int(mapper.cfg.iters_per_keyframe)
+    cfg = mapper.cfg
+    light = 0 < cfg.catch_up_backlog <= backlog
+    iters = int(cfg.catch_up_iters if light else cfg.iters_per_keyframe)
     step = iters if chunk <= 0 else int(chunk)
     stats: dict = {}
     done = 0
@@ -40,7 +45,8 @@ def map_keyframe(mapper, follower: PoseFollower, kf: Keyframe, refine: bool = Tr
         stats = mapper.train(n)
         done += n
     stats["iterations_total"] = done
-    if not refine or (stop is not None and stop()):
+    stats["light"] = light
+    if light or not refine or (stop is not None and stop()):
         return stats, None
     base = mapper.keyframe_poses()
     refined = mapper.refine_poses()

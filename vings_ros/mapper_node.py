@@ -84,6 +84,7 @@ class MapperNode(StageNode):
         self.rate = RateMeter(30.0)
         self._last_points = 0.0
         self.keyframes_mapped = 0
+        self.light_keyframes = 0        # trained lightly to catch up (mapping.catch_up_backlog)
         self.bad_parts = 0
 
         sq = T.sensor_qos
@@ -155,7 +156,9 @@ class MapperNode(StageNode):
             self.maybe_checkpoint(idle=False)
             return self._abort.is_set()
 
-        _, batch = map_keyframe(self.mapper, self.follower, kf, refine=True, chunk=TRAIN_CHUNK, stop=stop)
+        stats, batch = map_keyframe(self.mapper, self.follower, kf, refine=True, chunk=TRAIN_CHUNK, stop=stop,
+                                    backlog=len(self.queue))
+        self.light_keyframes += int(stats["light"])
         self.mark_changed()
         self.keyframes_mapped += 1
         self.rate.tick()
@@ -208,6 +211,7 @@ class MapperNode(StageNode):
 
     def diagnostics(self) -> NodeStatus:
         values = {"keyframes": len(self.mapper.keyframe_poses()), "keyframes_mapped": self.keyframes_mapped,
+                  "keyframes_light": self.light_keyframes,
                   "bad_keyframe_parts": self.bad_parts,
                   "gaussians_total": self.mapper.num_gaussians, "gaussians_active": self.mapper.num_active,
                   "gaussians_passive": self.mapper.num_passive, "queue_length": len(self.queue),

@@ -43,6 +43,11 @@ class MapperConfig:
     # ---- keyframe window and training
     window_size: int = 8               # local keyframe list length (paper 8)
     iters_per_keyframe: int = 50       # training iterations after each new keyframe (paper 50-100)
+    # keeping up: a keyframe mapped while at least catch_up_backlog more wait behind it is trained
+    # lightly (catch_up_iters iterations, no pose refinement); it stays in the map and in the window,
+    # whose later training rounds keep training it (0 = every keyframe fully)
+    catch_up_backlog: int = 0
+    catch_up_iters: int = 10
     sample_ratio: float = 0.5          # sample rasterizer: fraction r of pixels per tile back-propagated
     lambda_rgb: float = 1.0
     lambda_depth: float = 0.5
@@ -158,6 +163,8 @@ class MapperConfig:
             raise ValueError("window_size must be >= 1")
         if self.iters_per_keyframe < 0:
             raise ValueError("iters_per_keyframe must be >= 0")
+        if self.catch_up_backlog < 0 or self.catch_up_iters < 0:
+            raise ValueError("catch_up_backlog and catch_up_iters must be >= 0")
         if not 0 <= self.history_ratio < 1:
             raise ValueError(f"history_ratio must be in [0, 1), got {self.history_ratio}")
         if not 0 < self.sample_ratio <= 1:
