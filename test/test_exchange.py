@@ -325,3 +325,17 @@ def test_pose_written_before_the_keyframe_is_sent_reaches_the_follower():
     assert list(b.increments) == [3]
     fol.receive(b)
     np.testing.assert_allclose(mp.poses[3], fe.poses[3], atol=1e-12)
+
+
+def test_abandon_undoes_increments_the_stopped_keeper_never_answered():
+    rng, keeper, followers, (fe, mp, _) = _graph(policies={"mapper": WritebackPolicy.ALL})
+    C1, C2 = _shift(rng, 0.1), _shift(rng, 0.05)
+    mp.apply_increments({2: C1})
+    keeper.receive(followers["mapper"].send({2: C1}))       # answered below: stays
+    followers["mapper"].receive(keeper.outgoing())
+    mp.apply_increments({2: C2, 3: C2})
+    followers["mapper"].send({2: C2, 3: C2})                 # the keeper stops before it answers
+    assert followers["mapper"].abandon() == 2
+    for s in fe.poses:
+        np.testing.assert_allclose(mp.poses[s], fe.poses[s], atol=1e-12)
+    assert not followers["mapper"].in_flight

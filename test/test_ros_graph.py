@@ -365,9 +365,9 @@ def test_third_pose_writer_over_topics_moves_front_end_and_mapper(synthetic_mcap
     snap = shm_snapshot()
     env = ros_environment(domain, log_dir=tmp_path / "roslog")
     ckpt = tmp_path / "map_ckpt.npz"
-    # no mapper refinement, so only the window BA and the fixer move poses (a refinement made after
-    # the front end stopped is never answered: it stays in the mapper alone)
-    launcher = _launch(domain, env, ckpt, ("exchange.extra_writers=[fixer]", "mapping.refine_mode=none"))
+    # the mapper's refinements are refused (policy none) and undone, those the front end never
+    # answered before it stopped too: only the window BA and the fixer move poses for good
+    launcher = _launch(domain, env, ckpt, ("exchange.extra_writers=[fixer]", "exchange.mapper=none"))
     saved_env = dict(os.environ)
     apply_ros_environment(domain, log_dir=tmp_path / "roslog")
     rclpy.init()

@@ -156,7 +156,9 @@ class MapperNode(StageNode):
             self.maybe_checkpoint(idle=False)
             return self._abort.is_set()
 
-        stats, batch = map_keyframe(self.mapper, self.follower, kf, refine=True, chunk=TRAIN_CHUNK, stop=stop,
+        # no refinement once the front end has stopped: nobody would answer it
+        keeper_up = self.count_publishers(exchange_topic(KEEPER)) > 0
+        stats, batch = map_keyframe(self.mapper, self.follower, kf, refine=keeper_up, chunk=TRAIN_CHUNK, stop=stop,
                                     backlog=len(self.queue))
         self.light_keyframes += int(stats["light"])
         self.mark_changed()
@@ -273,6 +275,13 @@ class MapperNode(StageNode):
 
     def finish(self) -> None:
         self._exchange_receive()
+        if self.count_publishers(exchange_topic(KEEPER)) == 0:
+            # the front end has stopped: refinements it never answered are not in the trajectory
+            n = self.follower.abandon()
+            if n:
+                self.mark_changed()
+                self.get_logger().info(f"undid the unanswered refinement of {n} keyframe(s): the front end "
+                                       f"stopped before it answered")
 
     def close(self) -> None:
         self.mapper.close()

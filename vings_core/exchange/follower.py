@@ -98,6 +98,16 @@ class PoseFollower:
         self.stats["moved"] += len(moves)
         return len(moves)
 
+    def abandon(self) -> int:
+        """The keeper is gone for good (it stopped): undo the own increments it never answered, so
+        the owner ends at the keeper's poses, whose trajectory never held them. Returns how many
+        keyframes moved back."""
+        moves = {s: sim3_inverse(_product(incs)) for s, incs in self.in_flight.items() if s in self.keeper}
+        self.in_flight.clear()
+        if moves:
+            self.owner.apply_increments(moves)
+        return len(moves)
+
     def send(self, increments: dict[int, np.ndarray], seq_hint: int = 0) -> Optional[IncrementBatch]:
         """The owner's own moves ``{stamp: C}`` (already applied to it) as a batch for the keeper;
         None when there is nothing to send. Increments of keyframes the keeper never emitted are
