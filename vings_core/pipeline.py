@@ -7,8 +7,8 @@ and ROS results agree.
 Two modes:
 
 * **concurrent** (default, as in the paper): the mapper trains in its own thread on a keyframe queue;
-  tracking never waits for it. Refined keyframe poses flow back to the front end's pose buffer
-  between frames.
+  tracking waits for it only when ``run.max_mapper_lag`` keyframes are queued. Poses move between
+  the stages through the pose exchange (:mod:`vings_core.exchange`) between frames.
 * **sync** (``RunConfig.sync``): after each keyframe the mapper trains to completion before the next
   frame: deterministic, for tests and benchmarks.
 
