@@ -333,13 +333,13 @@ def check_sim3(C: np.ndarray | torch.Tensor, what: str, tol: float = 1e-6,
         C = C.detach().cpu().numpy()
     C = np.array(C, dtype=np.float64)
     if C.shape != (4, 4):
-        raise error(f"{what}: expected a 4x4 similarity, got shape {C.shape}")
+        raise error(f"{what}: expected a finite 4x4 similarity, got shape {C.shape}")
     if not np.isfinite(C).all():
-        raise error(f"{what}: similarity has non-finite entries")
+        raise error(f"{what}: expected a finite 4x4 similarity, it has non-finite entries")
     s = sim3_scale(C)
     if not s > 0:
-        raise error(f"{what}: not a similarity: the linear block has determinant {s ** 3:.3g} (scale^3 "
-                    f"must be positive)")
+        raise error(f"{what}: not a similarity with a positive scale (the linear block has determinant "
+                    f"{s ** 3:.3g})")
     T = C.copy()
     T[:3, :3] /= s
     dev = float(rigid_deviation(T))

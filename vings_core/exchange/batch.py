@@ -6,7 +6,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..errors import InputError
-from ..geometry import rigid_deviation, sim3_scale
+from ..geometry import check_sim3
 
 
 @dataclass
@@ -45,17 +45,5 @@ class IncrementBatch:
         if self.seq <= 0:
             raise InputError(f"{where}: increment batch sequence number must be > 0, got {self.seq}")
         for s, C in self.increments.items():
-            if C.shape != (4, 4) or not np.isfinite(C).all():
-                raise InputError(f"{where}: increment for keyframe {s} is not a finite 4x4 matrix")
-            sc = sim3_scale(C)
-            if not sc > 0 or float(rigid_deviation(_unscaled(C, sc))) > 1e-4:
-                raise InputError(f"{where}: increment for keyframe {s} is not a similarity transform "
-                                 f"(rotation times a positive scale, last row 0 0 0 1)")
+            check_sim3(C, f"{where}: increment for keyframe {s}", tol=1e-4)
         return self
-
-
-def _unscaled(C: np.ndarray, s: float) -> np.ndarray:
-    """``C`` with its rotation block divided by the scale ``s``."""
-    U = C.copy()
-    U[:3, :3] /= s
-    return U

@@ -30,7 +30,7 @@ import numpy as np
 import torch
 
 from ..errors import ConfigError, InputError
-from ..geometry import check_rigid_pose, rigid_deviation, sim3_apply_to_pose, sim3_scale
+from ..geometry import check_rigid_pose, check_sim3, sim3_apply_to_pose, sim3_scale
 from ..types import CameraModel, Keyframe
 from . import checkpoint as ckpt
 from .config import MapperConfig, RefineMode
@@ -408,16 +408,6 @@ def _check_similarity(C, what: str) -> tuple[np.ndarray, float]:
     """``C`` as a float64 4x4 similarity ``[[s R, t], [0, 1]]`` with ``s > 0`` and its scale ``s``
     (exactly 1.0 within 1e-12 of it); :class:`InputError` naming ``what`` otherwise (the rotation
     may deviate from orthonormal by round-off, up to 1e-2, as poses may)."""
-    C = np.array(C.detach().cpu().numpy() if torch.is_tensor(C) else C, dtype=np.float64)
-    if C.shape != (4, 4) or not np.isfinite(C).all():
-        raise InputError(f"{what}: expected a finite 4x4 similarity, got shape {C.shape}")
-    det = float(np.linalg.det(C[:3, :3]))
-    if not det > 0:
-        raise InputError(f"{what}: not a similarity with a positive scale (det {det:.3g})")
+    C = check_sim3(C, what, tol=1e-2)
     s = sim3_scale(C)
-    unit = C.copy()
-    unit[:3, :3] /= s
-    dev = float(rigid_deviation(unit))
-    if dev > 1e-2:
-        raise InputError(f"{what}: not a similarity [[s R, t], [0, 0, 0, 1]] (deviation {dev:.2g})")
     return C, (1.0 if abs(s - 1.0) <= 1e-12 else s)
