@@ -17,7 +17,7 @@ from vings_core.types import Trajectory
 
 CONTRACT_KEYS = ["frames", "frames_tracked", "keyframes", "wall_s", "fps", "ate_sim3_m", "ate_se3_m",
                  "sim3_scale", "rpe", "psnr_keyframes_db", "psnr_novel_db", "ssim_keyframes",
-                 "num_gaussians", "peak_rss_mb"]
+                 "num_gaussians", "peak_rss_mb", "keyframes_light", "queue_peak_keyframes", "queue_spilled"]
 
 
 def test_metric_keys_are_the_contract():
@@ -414,8 +414,8 @@ def test_a_bug_in_the_mapper_is_one_line_in_both_modes(tmp_path, caplog, monkeyp
     assert (tmp_path / "o" / "trajectory.partial.tum").exists()
 
 
-def test_the_mapper_queue_is_bounded(tmp_path, monkeypatch):
-    """Without --sync, tracking waits once max_mapper_lag keyframes are queued for the mapper."""
+def test_max_mapper_lag_makes_tracking_wait(tmp_path, monkeypatch):
+    """With run.max_mapper_lag set, tracking waits once that many keyframes are queued."""
     import time as _time
     from vings_core.mapping import Mapper
     from vings_core.pipeline import RunConfig, SlamRunner
@@ -425,12 +425,46 @@ def test_the_mapper_queue_is_bounded(tmp_path, monkeypatch):
     real = Mapper.add_keyframe
 
     def slow(self, kf):
-        seen.append(r._queue.qsize())
+        seen.append(r._queue.keyframes)
         _time.sleep(0.3)
         return real(self, kf)
     monkeypatch.setattr(Mapper, "add_keyframe", slow)
     m = r.run()
     assert m["keyframes"] >= 4 and max(seen) <= 2, seen
+
+
+def test_tracking_never_waits_and_queued_keyframes_spill_to_disk(tmp_path, monkeypatch):
+    """Default concurrent mode: a slow mapper never holds tracking up; beyond
+    queue_memory_keyframes the waiting keyframes go to disk, and every one is mapped."""
+    import threading
+    from vings_core.mapping import Mapper
+    from vings_core.pipeline import RunConfig, SlamRunner
+    r = SlamRunner(_room_source(tmp_path, 40), tmp_path / "o", _fast_params(tmp_path),
+                   RunConfig(sync=False, queue_memory_keyframes=1, eval_keyframes=1, eval_novel=1),
+                   progress=False)
+    gate = threading.Event()
+    mapped = []
+    real = Mapper.add_keyframe
+
+    def blocked(self, kf):
+        gate.wait(60)           # the mapper is stuck until tracking has read every frame
+        mapped.append(kf.stamp_ns)
+        return real(self, kf)
+    monkeypatch.setattr(Mapper, "add_keyframe", blocked)
+    real_stop = SlamRunner._stop_worker
+    seen = {}
+
+    def stop(self, worker):     # tracking is done: every keyframe is queued or with the mapper
+        seen["on_disk"] = self._queue.keyframes_on_disk
+        seen["files"] = len(list((tmp_path / "o" / ".queue").glob("kf-*.pt")))
+        gate.set()
+        return real_stop(self, worker)
+    monkeypatch.setattr(SlamRunner, "_stop_worker", stop)
+    m = r.run()
+    assert seen["on_disk"] >= 2 and seen["files"] == seen["on_disk"], seen
+    assert m["queue_spilled"] >= 2 and m["queue_peak_keyframes"] >= 3
+    assert sorted(mapped) == sorted(r._kf_stamps) and len(mapped) == m["keyframes"]
+    assert not (tmp_path / "o" / ".queue").exists()
 
 
 @pytest.mark.parametrize("field,value", [("gt_kf_max_gap", 0), ("gt_kf_trans_m", -0.1),

@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import logging
 import math
-import queue
 import threading
 import time
 from dataclasses import dataclass, replace
@@ -37,6 +36,7 @@ from .eval.traj import evaluate_trajectory
 from .exchange import ExchangeConfig, IncrementBatch, PoseFollower, PoseKeeper
 from .geometry import rotation_angle_deg
 from .io.base import Source, SourceOptions
+from .keyframe_queue import KeyframeQueue
 from .profiling import timed, timed_iter
 from .stages import MAPPER_SOURCE
 from .stages import map_keyframe
@@ -56,9 +56,12 @@ class RunConfig:
     ``eval_keyframes``/``eval_novel``: at most this many keyframes / non-keyframe frames are rendered
     for PSNR (evenly spaced). ``save_renders``: keyframe renders saved under renders/.
     ``checkpoint_every``: keyframes between map checkpoints (0 = only at the end).
-    ``max_mapper_lag``: without ``sync``, keyframes that may wait for the mapper thread; tracking
-    waits when that many are queued, so memory stays bounded and the mapper's refinements reach
-    the front end during the run (0 = no bound).
+    ``queue_memory_keyframes``: without ``sync``, keyframes waiting for the mapper thread that are
+    held in memory; later ones spill to disk (:class:`~vings_core.keyframe_queue.KeyframeQueue`),
+    so memory stays bounded and tracking never waits. ``queue_spill_dir``: their folder (empty: a
+    ``.queue`` folder in the output folder, removed at the end).
+    ``max_mapper_lag``: when > 0, tracking waits while that many keyframes are queued (the mapper's
+    refinements then reach the front end sooner, at the cost of real time); 0 (default) = never.
     The pose exchange between the stages has its own section, ``exchange``
     (:class:`~vings_core.exchange.ExchangeConfig`).
     """
@@ -77,7 +80,9 @@ class RunConfig:
     eval_novel: int = 40
     save_renders: int = 6
     checkpoint_every: int = 20
-    max_mapper_lag: int = 8
+    max_mapper_lag: int = 0
+    queue_memory_keyframes: int = 8
+    queue_spill_dir: str = ""
 
     def validate(self) -> None:
         if self.width < 0 or self.height < 0:
@@ -88,6 +93,8 @@ class RunConfig:
             raise ValueError(f"gt_kf_max_gap must be >= 1 frame, got {self.gt_kf_max_gap}")
         if self.max_mapper_lag < 0:
             raise ValueError(f"max_mapper_lag must be >= 0, got {self.max_mapper_lag}")
+        if self.queue_memory_keyframes < 1:
+            raise ValueError(f"queue_memory_keyframes must be >= 1, got {self.queue_memory_keyframes}")
         for name in ("gt_kf_trans_m", "gt_kf_rot_deg", "gt_inv_depth_var"):
             v = getattr(self, name)
             if not (math.isfinite(v) and v >= 0):
@@ -244,7 +251,8 @@ class SlamRunner:
         self._partial_ckpt = False  # this run wrote checkpoint.partial.pt
         self._to_keeper: list[IncrementBatch] = []     # mapper batches, from the mapper thread
         self._lock = threading.Lock()
-        self._queue: "queue.Queue[Optional[tuple[str, object]]]" = queue.Queue()
+        self._queue = KeyframeQueue(self.cfg.queue_memory_keyframes,
+                                    self.cfg.queue_spill_dir or self.out.out_dir / ".queue", remove_dir=True)
         # slots of the bounded mapper queue (mapper thread only, see max_mapper_lag)
         self._kf_queued = (threading.Semaphore(self.cfg.max_mapper_lag)
                            if self.cfg.max_mapper_lag and not self.cfg.sync else None)
@@ -257,6 +265,7 @@ class SlamRunner:
         self.follower = PoseFollower(MAPPER_SOURCE, self.mapper)
         self.stages = tuple(stages)
         self.out.prepare()      # after the configuration is known to be valid, before any work
+        self._queue.discard_leftovers()     # of a killed earlier run (runs do not resume)
 
     # --------------------------------------------------------------------------- mapping side
 
@@ -275,7 +284,7 @@ class SlamRunner:
 
     def _backlog(self) -> int:
         """Keyframes waiting for the mapper thread (0 in sync mode)."""
-        return sum(1 for m in list(self._queue.queue) if m is not None and m[0] == "kf")
+        return self._queue.keyframes
 
     def _handle(self, kind: str, item: object) -> None:
         if kind == "kf":
@@ -290,10 +299,14 @@ class SlamRunner:
     def _mapper_loop(self) -> None:
         try:
             while True:
-                msg = self._queue.get()
+                if self._abort:     # a failed or interrupted run writes nothing: drop the rest
+                    self._queue.clear()
+                msg = self._queue.get(0.2)
                 if msg is None:
-                    return
-                if not self._abort:     # a failed or interrupted run writes nothing: skip the rest
+                    if self._queue.closed() and not len(self._queue):
+                        return
+                    continue
+                if not self._abort:
                     self._handle(*msg)
         except VingsError as e:     # a user-facing error (disk full, bad input): one line, in the main thread
             self._mapper_err = e
@@ -358,7 +371,7 @@ class SlamRunner:
             return
         if kind == "kf" and self._kf_queued is not None:
             self._wait_for_mapper()
-        self._queue.put((kind, item))
+        self._queue.put(kind, item)
 
     def _wait_for_mapper(self) -> None:
         """Take a keyframe slot of the bounded mapper queue (``max_mapper_lag``); waits while the
@@ -439,6 +452,8 @@ class SlamRunner:
                 log.warning("the mapper had stopped too: %s", self._mapper_err)
             self._save_partial()
             raise
+        finally:
+            self._queue.close()
         with timed("io", "write outputs"):
             return self._write_final(final, t0)
 
@@ -473,8 +488,8 @@ class SlamRunner:
             self._send_moves(worker)
             for kf in kfs:
                 self._submit(kf, worker)
-        if worker is not None and self._queue.qsize():
-            n_kf = sum(1 for m in list(self._queue.queue) if m is not None and m[0] == "kf")
+        if worker is not None and self._queue.keyframes:
+            n_kf = self._queue.keyframes
             log.info("tracking done; the mapper is finishing %d queued keyframe(s) (Ctrl-C stops it; "
                      "the trajectory is kept)", n_kf)
         self._stop_worker(worker)
@@ -536,8 +551,10 @@ class SlamRunner:
         if self.light_keyframes:
             log.info("%d of %d keyframes trained lightly to keep up (mapping.catch_up_backlog)",
                      self.light_keyframes, len(kf_traj))
+        q = self._queue.stats()
         m.update(frames=n_frames, frames_tracked=len(traj), keyframes=len(kf_traj),
-                 num_gaussians=int(self.mapper.num_gaussians))
+                 num_gaussians=int(self.mapper.num_gaussians), keyframes_light=self.light_keyframes,
+                 queue_peak_keyframes=q["queue_peak_keyframes"], queue_spilled=q["queue_spilled"])
         # with gt_poses the trajectory IS the ground truth: no ATE/RPE to report (null)
         gt = None
         if not self.cfg.gt_poses:

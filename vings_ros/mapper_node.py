@@ -33,6 +33,7 @@ from msg_adapters.pose import trajectory_to_path
 from vings_core.errors import InputError
 from vings_core.exchange import IncrementBatch, PoseFollower
 from vings_core.exchange.config import KEEPER
+from vings_core.keyframe_queue import KeyframeQueue
 from vings_core.mapping import Mapper, MapperConfig
 from vings_core.stages import MAPPER_SOURCE, map_keyframe
 from vings_core.types import Keyframe, Trajectory
@@ -40,7 +41,7 @@ from vings_core.types import Keyframe, Trajectory
 from . import registry
 from .node_base import BatchInbox, Level, NodeStatus, StageNode
 from .node_common import RateMeter, worth_reporting
-from .node_config import MapperNodeConfig, QueuePolicy
+from .node_config import MapperNodeConfig
 
 #: training iterations between two checks for shutdown / a due checkpoint
 TRAIN_CHUNK = 5
@@ -77,8 +78,8 @@ class MapperNode(StageNode):
         self._exchange_setup()
         self.mapper = self._load_or_new()
         self.assembler = KeyframeAssembler(max_pending=16)
-        # keyframes are never dropped: the queue is FIFO whatever the input policy
-        self.queue = self.input_queue(QueuePolicy.BACKPRESSURE, 10 ** 6)
+        # keyframes are never dropped: FIFO whatever the input policy, bounded in memory, the rest on disk
+        self.queue = self._keyframe_queue()
         self._abort = threading.Event()     # shutdown: stop training early
         self._busy = False
         self.rate = RateMeter(30.0)
@@ -103,6 +104,18 @@ class MapperNode(StageNode):
         return (f"mapper ready: {len(self.mapper.keyframe_poses())} keyframes, "
                 f"{self.mapper.num_gaussians} Gaussians")
 
+    def _keyframe_queue(self) -> KeyframeQueue:
+        s = self.settings
+        spill = s.queue_spill_dir or (f"{self.checkpoint_file}.queue" if self.checkpoint_file is not None else "")
+        q = KeyframeQueue(s.queue_memory_keyframes, spill or None, remove_dir=not spill)
+        if spill and s.resume:
+            n = q.recover()
+            if n:
+                self.get_logger().info(f"resumed {n} queued keyframe(s) from {spill}")
+        elif spill:
+            q.discard_leftovers()
+        return q
+
     def _load_or_new(self) -> Mapper:
         resume = self.resume_file()
         if resume is not None:
@@ -125,12 +138,13 @@ class MapperNode(StageNode):
                                           f"far): {e}")
             return
         if kf is not None:
-            self.queue.put(kf)
+            self.queue.put("kf", kf)
 
     # ----------------------------------------------------------------------------- the worker
 
     def step(self) -> None:
-        kf: Optional[Keyframe] = self.queue.get(timeout=0.1)
+        msg = self.queue.get(timeout=0.1)
+        kf: Optional[Keyframe] = None if msg is None else msg[1]
         self._exchange_receive()
         if kf is None:
             self.maybe_checkpoint(idle=True)
@@ -159,7 +173,7 @@ class MapperNode(StageNode):
         # no refinement once the front end has stopped: nobody would answer it
         keeper_up = self.count_publishers(exchange_topic(KEEPER)) > 0
         stats, batch = map_keyframe(self.mapper, self.follower, kf, refine=keeper_up, chunk=TRAIN_CHUNK, stop=stop,
-                                    backlog=len(self.queue))
+                                    backlog=self.queue.keyframes)
         self.light_keyframes += int(stats["light"])
         self.mark_changed()
         self.keyframes_mapped += 1
@@ -216,7 +230,8 @@ class MapperNode(StageNode):
                   "keyframes_light": self.light_keyframes,
                   "bad_keyframe_parts": self.bad_parts,
                   "gaussians_total": self.mapper.num_gaussians, "gaussians_active": self.mapper.num_active,
-                  "gaussians_passive": self.mapper.num_passive, "queue_length": len(self.queue),
+                  "gaussians_passive": self.mapper.num_passive, "queue_length": self.queue.keyframes,
+                  "queue_on_disk": self.queue.keyframes_on_disk,
                   "keyframe_rate_hz": self.rate.hz, "incomplete_packets": self.assembler.pending,
                   "dropped_packets": self.assembler.dropped, "checkpoints": self.checkpoints}
         return NodeStatus(Level.OK, "mapping", values)
@@ -265,12 +280,14 @@ class MapperNode(StageNode):
         it never races with training."""
         timeout = self.settings.shutdown_timeout_s
         deadline = time.monotonic() + timeout
-        while (len(self.queue) or self._busy) and self.error is None and \
+        while (self.queue.keyframes or self._busy) and self.error is None and \
                 self.worker.thread.is_alive() and time.monotonic() < deadline:
             time.sleep(0.05)
-        if len(self.queue) or self._busy:
-            self.get_logger().warning(f"shutdown: {len(self.queue)} queued keyframes not mapped "
-                                      f"after {timeout:.0f} s")
+        if self.queue.keyframes or self._busy:
+            kept = (f"; they wait in {self.queue.spill_dir} for the next start (resume)"
+                    if self.queue.keeps_files else "")
+            self.get_logger().warning(f"shutdown: {self.queue.keyframes} queued keyframes not mapped "
+                                      f"after {timeout:.0f} s{kept}")
         self._abort.set()
 
     def finish(self) -> None:
@@ -284,6 +301,10 @@ class MapperNode(StageNode):
                                        f"stopped before it answered")
 
     def close(self) -> None:
+        if self.queue.keeps_files:
+            self.queue.persist()        # what was not mapped waits on disk for the resumed node
+        else:
+            self.queue.close()
         self.mapper.close()
 
 

@@ -99,7 +99,11 @@ class MapperNodeConfig(CheckpointSettings):
     after SIGINT. ``nice``: niceness the mapper process adds to itself, so tracking wins the CPU
     (0 = off); ``threads``: torch / numba threads (0 = library default). ``points_period_s``:
     throttle of /vings/map/points, ``max_points`` its size. ``render_every_keyframes``: publish
-    renders after every n-th keyframe (0 = never)."""
+    renders after every n-th keyframe (0 = never). ``queue_memory_keyframes``: received keyframes
+    waiting for the mapper held in memory; later ones wait on disk
+    (:class:`vings_core.keyframe_queue.KeyframeQueue`), none is dropped. ``queue_spill_dir``: their
+    folder; empty: ``<checkpoint_path>.queue`` when a checkpoint is set (a stopped or killed node
+    that resumes maps what waited there), else a private temporary folder."""
 
     checkpoint_every_keyframes: int = 5
     shutdown_timeout_s: float = 120.0
@@ -108,9 +112,13 @@ class MapperNodeConfig(CheckpointSettings):
     points_period_s: float = 2.0
     max_points: int = 200000
     render_every_keyframes: int = 1
+    queue_memory_keyframes: int = 8
+    queue_spill_dir: str = ""
 
     def validate(self) -> None:
         super().validate()
+        if self.queue_memory_keyframes < 1:
+            raise ValueError(f"queue_memory_keyframes must be >= 1, got {self.queue_memory_keyframes}")
         if self.checkpoint_every_keyframes < 0:
             raise ValueError("checkpoint_every_keyframes must be >= 0")
         if not 0 <= self.nice <= 19:

@@ -49,8 +49,10 @@ METRIC_KEYS = (
     "ate_sim3_m", "ate_se3_m", "sim3_scale", "rpe",
     "psnr_keyframes_db", "psnr_novel_db", "ssim_keyframes",
     "num_gaussians", "peak_rss_mb",
+    "keyframes_light", "queue_peak_keyframes", "queue_spilled",
 )
-_INT_KEYS = {"frames", "frames_tracked", "keyframes", "num_gaussians"}
+_INT_KEYS = {"frames", "frames_tracked", "keyframes", "num_gaussians", "keyframes_light",
+             "queue_peak_keyframes", "queue_spilled"}
 #: Keys of :func:`vings_core.eval.traj.evaluate_trajectory`'s result that go into metrics.json.
 TRAJECTORY_METRIC_KEYS = ("ate_sim3_m", "ate_se3_m", "sim3_scale", "rpe")
 
