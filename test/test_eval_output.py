@@ -17,7 +17,7 @@ from vings_core.types import Trajectory
 
 CONTRACT_KEYS = ["frames", "frames_tracked", "keyframes", "wall_s", "fps", "ate_sim3_m", "ate_se3_m",
                  "sim3_scale", "rpe", "psnr_keyframes_db", "psnr_novel_db", "ssim_keyframes",
-                 "num_gaussians", "peak_rss_mb", "keyframes_light", "queue_peak_keyframes", "queue_spilled"]
+                 "num_gaussians", "peak_rss_mb", "keyframes_light", "queue_peak_keyframes", "queue_spilled", "frames_unposed", "frames_unposed_reason"]
 
 
 def test_metric_keys_are_the_contract():
@@ -305,7 +305,7 @@ def test_failed_rerun_keeps_the_previous_complete_run(tmp_path, monkeypatch):
 
 def test_run_without_keyframes_still_creates_renders_folder(tmp_path):
     from vings_core.pipeline import RunConfig, SlamRunner
-    src = _room_source(tmp_path, frames=3)
+    src = _room_source(tmp_path, frames=2)
     m = SlamRunner(src, tmp_path / "o", _fast_params(tmp_path), RunConfig(sync=True), progress=False).run()
     assert m["keyframes"] == 0 and (tmp_path / "o" / "renders").is_dir()
     # still the whole contract: empty trajectories, a valid empty map, metrics with nulls

@@ -286,3 +286,34 @@ def test_gain_offset_and_rotation_only_residual():
     p0 = proj(P)
     assert rotation_only_residual(p0, proj(P @ R.T), K) < 1e-6
     assert rotation_only_residual(p0, proj(P @ R.T + np.array([0.2, 0.0, 0.0])), K) > 2.0
+
+
+def _triangulation_angles_reference(P: np.ndarray, R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """Angle at each 3-D point ``P`` (reference frame) between the rays to the two camera centres."""
+    C1 = -R.T @ t                          # second camera centre in the reference frame
+    a = P / np.linalg.norm(P, axis=1, keepdims=True)
+    b = (P - C1) / np.linalg.norm(P - C1, axis=1, keepdims=True)
+    return np.degrees(np.arccos(np.clip((a * b).sum(1), -1, 1)))
+
+
+def test_triangulation_angles_match_the_geometry_under_forward_and_sideways_motion():
+    from vings_core.frontend.initialise import triangulation_angles_deg
+    from vings_core.geometry import np_so3_exp
+    K = np.array([[360.0, 0, 306], [0, 360.0, 92], [0, 0, 1]])
+    rng = np.random.default_rng(1)
+    P = np.c_[rng.uniform(-8, 8, (300, 2)), rng.uniform(4, 60, 300)]
+    R = np_so3_exp(np.array([0.01, 0.04, -0.02]))
+
+    def proj(X):
+        q = X @ K.T
+        return q[:, :2] / q[:, 2:]
+    for t in (np.array([0.0, 0.0, -1.5]), np.array([0.8, 0.0, 0.0])):    # forward, sideways
+        X1 = P @ R.T + t
+        ang = triangulation_angles_deg(proj(P), proj(X1), K, R)
+        assert np.allclose(ang, _triangulation_angles_reference(P, R, t), atol=1e-6)
+    # forward motion: small angles near the focus of expansion, wide ones towards the border
+    t = np.array([0.0, 0.0, -1.5])
+    ang = triangulation_angles_deg(proj(P), proj(P @ R.T + t), K, R)
+    off_axis = np.hypot(P[:, 0], P[:, 1]) / P[:, 2]
+    assert ang[off_axis > 0.5].mean() > 3 * ang[off_axis < 0.1].mean()
+    assert np.allclose(triangulation_angles_deg(proj(P), proj(P @ R.T), K, R), 0, atol=1e-4)

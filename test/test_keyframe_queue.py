@@ -154,3 +154,20 @@ def test_persist_then_recover_keeps_every_keyframe_in_order(tmp_path):
     assert q2.recover() == 4
     got = [q2.get(0)[1] for _ in range(4)]
     assert [k.stamp_ns for k in got] == [2, 3, 4, 5] and _same(got[0], _kf(2))
+
+
+def test_nice_current_thread_lowers_only_the_calling_thread():
+    import os
+    from vings_core.util import nice_current_thread
+    main = os.getpriority(os.PRIO_PROCESS, 0)
+    seen = {}
+
+    def worker():
+        tid = threading.get_native_id()
+        before = os.getpriority(os.PRIO_PROCESS, tid)
+        assert nice_current_thread(3)
+        seen["delta"] = os.getpriority(os.PRIO_PROCESS, tid) - before
+    t = threading.Thread(target=worker)
+    t.start()
+    t.join()
+    assert seen["delta"] == min(3, 19 - main) and os.getpriority(os.PRIO_PROCESS, 0) == main

@@ -41,6 +41,7 @@ from .profiling import timed, timed_iter
 from .stages import MAPPER_SOURCE
 from .stages import map_keyframe
 from .types import Frame, Keyframe, TrackState, Trajectory
+from .util import nice_current_thread
 
 log = logging.getLogger("vings.run")
 
@@ -60,6 +61,8 @@ class RunConfig:
     held in memory; later ones spill to disk (:class:`~vings_core.keyframe_queue.KeyframeQueue`),
     so memory stays bounded and tracking never waits. ``queue_spill_dir``: their folder (empty: a
     ``.queue`` folder in the output folder, removed at the end).
+    ``mapper_nice``: niceness added to the mapper thread alone (0-19), so that on a small machine
+    tracking gets the CPU first and stays real time.
     ``max_mapper_lag``: when > 0, tracking waits while that many keyframes are queued (the mapper's
     refinements then reach the front end sooner, at the cost of real time); 0 (default) = never.
     The pose exchange between the stages has its own section, ``exchange``
@@ -81,6 +84,7 @@ class RunConfig:
     save_renders: int = 6
     checkpoint_every: int = 20
     max_mapper_lag: int = 0
+    mapper_nice: int = 10
     queue_memory_keyframes: int = 8
     queue_spill_dir: str = ""
 
@@ -93,6 +97,8 @@ class RunConfig:
             raise ValueError(f"gt_kf_max_gap must be >= 1 frame, got {self.gt_kf_max_gap}")
         if self.max_mapper_lag < 0:
             raise ValueError(f"max_mapper_lag must be >= 0, got {self.max_mapper_lag}")
+        if not 0 <= self.mapper_nice <= 19:
+            raise ValueError(f"mapper_nice must be in 0..19, got {self.mapper_nice}")
         if self.queue_memory_keyframes < 1:
             raise ValueError(f"queue_memory_keyframes must be >= 1, got {self.queue_memory_keyframes}")
         for name in ("gt_kf_trans_m", "gt_kf_rot_deg", "gt_inv_depth_var"):
@@ -297,6 +303,7 @@ class SlamRunner:
             self.follower.receive(item)
 
     def _mapper_loop(self) -> None:
+        nice_current_thread(self.cfg.mapper_nice)
         try:
             while True:
                 if self._abort:     # a failed or interrupted run writes nothing: drop the rest
@@ -555,6 +562,11 @@ class SlamRunner:
         m.update(frames=n_frames, frames_tracked=len(traj), keyframes=len(kf_traj),
                  num_gaussians=int(self.mapper.num_gaussians), keyframes_light=self.light_keyframes,
                  queue_peak_keyframes=q["queue_peak_keyframes"], queue_spilled=q["queue_spilled"])
+        if self.frontend is not None:
+            n_unposed, why = self.frontend.unposed()
+            m.update(frames_unposed=n_unposed, frames_unposed_reason=why)
+            if n_unposed:
+                log.warning("%d of %d frames have no pose: %s", n_unposed, n_frames, why)
         # with gt_poses the trajectory IS the ground truth: no ATE/RPE to report (null)
         gt = None
         if not self.cfg.gt_poses:

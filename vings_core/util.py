@@ -162,3 +162,19 @@ def _json_default(o: Any) -> Any:
 def setup_logging(verbose: bool = False) -> None:
     logging.basicConfig(level=logging.DEBUG if verbose else logging.INFO,
                         format="[vings] %(levelname)s %(message)s")
+
+
+def nice_current_thread(increment: int) -> bool:
+    """Add ``increment`` (0-19) to the niceness of the calling thread alone (Linux: a thread is a
+    task with its own priority), so that a background stage yields the CPU to tracking. Threads it
+    starts later inherit it. Returns False where the platform does not allow it."""
+    if increment <= 0:
+        return True
+    try:
+        import threading
+        tid = threading.get_native_id()
+        cur = os.getpriority(os.PRIO_PROCESS, tid)
+        os.setpriority(os.PRIO_PROCESS, tid, min(19, cur + increment))
+        return True
+    except (AttributeError, OSError):
+        return False

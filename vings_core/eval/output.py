@@ -50,9 +50,11 @@ METRIC_KEYS = (
     "psnr_keyframes_db", "psnr_novel_db", "ssim_keyframes",
     "num_gaussians", "peak_rss_mb",
     "keyframes_light", "queue_peak_keyframes", "queue_spilled",
+    "frames_unposed", "frames_unposed_reason",
 )
 _INT_KEYS = {"frames", "frames_tracked", "keyframes", "num_gaussians", "keyframes_light",
-             "queue_peak_keyframes", "queue_spilled"}
+             "queue_peak_keyframes", "queue_spilled", "frames_unposed"}
+_STR_KEYS = {"frames_unposed_reason"}
 #: Keys of :func:`vings_core.eval.traj.evaluate_trajectory`'s result that go into metrics.json.
 TRAJECTORY_METRIC_KEYS = ("ate_sim3_m", "ate_se3_m", "sim3_scale", "rpe")
 
@@ -88,8 +90,8 @@ def validate_metrics(metrics: dict) -> dict:
     """Check keys and types; returns a complete JSON-safe dict in :data:`METRIC_KEYS` order.
 
     Unknown keys raise ValueError (a programming error); missing keys become None; non-finite
-    numbers (e.g. the PSNR of identical images) become None; ``rpe`` must be a dict or None; the
-    other values numbers or None."""
+    numbers (e.g. the PSNR of identical images) become None; ``rpe`` must be a dict or None,
+    ``frames_unposed_reason`` a string or None; the other values numbers or None."""
     unknown = [k for k in metrics if k not in METRIC_KEYS]
     if unknown:
         raise ValueError(f"unknown metrics key(s) {unknown}; allowed: {list(METRIC_KEYS)}")
@@ -99,6 +101,9 @@ def validate_metrics(metrics: dict) -> dict:
         if k == "rpe":
             if v is not None and not isinstance(v, dict):
                 raise ValueError(f"metrics 'rpe' must be a dict or None, got {type(v).__name__}")
+        elif k in _STR_KEYS:
+            if v is not None and not isinstance(v, str):
+                raise ValueError(f"metrics {k!r} must be a string or None, got {v!r}")
         elif v is not None and (isinstance(v, bool) or not isinstance(v, (int, float))):
             raise ValueError(f"metrics {k!r} must be a number or None, got {v!r}")
         elif k in _INT_KEYS and v is not None:

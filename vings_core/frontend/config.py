@@ -57,6 +57,8 @@ class FrontendConfig:
     relocalize_frames: int = 5          #: failed frames tried against the window before re-initialising
     # ---- initialisation
     init_min_parallax_lr_px: float = 1.0  #: median rotation-compensated flow (1/8 res) to initialise
+    init_min_angle_deg: float = 1.0     #: a "wide" triangulation angle of an inlier (deg) ...
+    init_min_wide_frac: float = 0.3     #: ... and the inlier fraction that also initialises (0 = off)
     init_min_inlier_frac: float = 0.5   #: essential-matrix RANSAC inlier fraction needed
     init_ransac_px: float = 1.0         #: essential-matrix RANSAC threshold (px)
     still_flow_lr_px: float = 0.25      #: mean flow (1/8 res) below which the camera is reported still
@@ -109,10 +111,11 @@ class FrontendConfig:
                      "max_rel_depth_std", "max_depth_factor", "far_factor"):
             if getattr(self, name) <= 0:
                 raise ValueError(f"{name} must be positive")
-        for name in ("keyframe_conf_ratio", "min_confident_frac", "min_weight", "init_min_inlier_frac"):
+        for name in ("keyframe_conf_ratio", "min_confident_frac", "min_weight", "init_min_inlier_frac",
+                     "init_min_wide_frac"):
             if not 0.0 <= getattr(self, name) <= 1.0:
                 raise ValueError(f"{name} must be in [0, 1], got {getattr(self, name)}")
-        for name in ("proximity_flow_lr_px", "init_min_parallax_lr_px", "still_flow_lr_px",
+        for name in ("proximity_flow_lr_px", "init_min_parallax_lr_px", "init_min_angle_deg", "still_flow_lr_px",
                      "textureless_grad", "lm_lambda"):
             if getattr(self, name) < 0:
                 raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")

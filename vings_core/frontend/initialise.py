@@ -27,6 +27,7 @@ from .window import KeyframeWindow, WindowKeyframe
 
 log = logging.getLogger("vings.frontend")
 MAX_PENDING = 400          # waiting frames re-posed at initialisation (most recent)
+MAX_ORPHANS = 100          # frames of replaced references kept for back-filling (most recent)
 
 
 def rotation_only_residual(p0: np.ndarray, p1: np.ndarray, K: np.ndarray) -> float:
@@ -44,12 +45,27 @@ def rotation_only_residual(p0: np.ndarray, p1: np.ndarray, K: np.ndarray) -> flo
     return float(np.median(np.linalg.norm(p1 - q[:, :2] / q[:, 2:3], axis=1)))
 
 
+def triangulation_angles_deg(p0: np.ndarray, p1: np.ndarray, K: np.ndarray, R: np.ndarray) -> np.ndarray:
+    """Angle (deg) between the two viewing rays of each match ``p0 -> p1`` (``(N, 2)`` pixels)
+    once the relative rotation ``R`` (``x1 = R x0 + t``) is removed: the triangulation angle of
+    the point, independent of the baseline's direction (near the focus of expansion of a forward
+    motion it is small, at the image border large; the median flow alone misses that)."""
+    Ki = np.linalg.inv(K)
+    b0 = np.c_[p0, np.ones(len(p0))] @ Ki.T
+    b1 = np.c_[p1, np.ones(len(p1))] @ Ki.T @ R        # rows: R^T b1, in the reference frame
+    b0 /= np.linalg.norm(b0, axis=1, keepdims=True)
+    b1 /= np.linalg.norm(b1, axis=1, keepdims=True)
+    return np.degrees(np.arccos(np.clip((b0 * b1).sum(1), -1.0, 1.0)))
+
+
 @dataclass
 class PendingFrame:
-    """A frame that waited for initialisation: its stamp and the grid flow reference -> frame."""
+    """A frame that waited for initialisation: its stamp, the grid flow reference -> frame and its
+    grey image (kept to back-fill it should its reference be replaced)."""
 
     stamp: int
     flow: GridFlow
+    gray: Optional[np.ndarray] = None
 
 
 @dataclass
@@ -79,12 +95,14 @@ class SegmentStart:
 @dataclass
 class RelativePose:
     """Reference -> current frame from the essential matrix: ``R``, unit ``t`` (``T_10``), the
-    inlier fraction and the median rotation-compensated parallax of the inliers (working px)."""
+    inlier fraction, the median rotation-compensated parallax of the inliers (working px) and the
+    fraction of inliers whose triangulation angle reaches ``init_min_angle_deg``."""
 
     R: np.ndarray
     t: np.ndarray
     inlier_frac: float
     parallax_px: float
+    wide_frac: float = 0.0
 
 
 @dataclass
@@ -118,6 +136,10 @@ class Initialiser:
         self.window = window
         self.ref: Optional[Reference] = None
         self.segment = SegmentStart()
+        # frames of references that lost overlap (stamp, grey; oldest first): posed at initialisation
+        # by flow from the first keyframe, back to the oldest one that still overlaps it
+        self.orphans: list[tuple[int, np.ndarray]] = []
+        self.unposed_why: Optional[str] = None      # why frames before initialisation kept no pose
 
     def next_segment(self, T_cw: Optional[np.ndarray], depth: Optional[float]) -> None:
         """Start over for a new segment anchored at ``T_cw`` (``None``: the current anchor) with
@@ -125,8 +147,15 @@ class Initialiser:
         self.segment = SegmentStart(self.segment.index + 1,
                                     T_cw if T_cw is not None else self.segment.T_cw, depth)
         self.ref = None
+        self.orphans = []
 
     def new_reference(self, frame: Frame, gray: np.ndarray, why: str) -> None:
+        old = self.ref
+        if old is not None:         # its frames wait for a pose from the next initialisation
+            self.orphans.append((old.stamp, old.gray))
+            self.orphans.extend((p.stamp, p.gray) for p in old.pending
+                                if p.gray is not None and p.stamp != frame.stamp_ns)
+            del self.orphans[:-MAX_ORPHANS]
         self.ref = Reference(frame.stamp_ns, gray, frame.rgb(), self.ctx.texture(gray))
         self.ctx.reason = why
 
@@ -156,7 +185,9 @@ class Initialiser:
         ctx.max_mean_flow_lr = max(ctx.max_mean_flow_lr, mean_lr)
         if mean_lr >= cfg.still_flow_lr_px:
             ctx.motion_detected = True
-        ref.pending.append(PendingFrame(stamp, gf))
+        ref.pending.append(PendingFrame(stamp, gf, gray))
+        if len(ref.pending) > MAX_ORPHANS:     # grey images only for the frames a back-fill may reach
+            ref.pending[-MAX_ORPHANS - 1].gray = None
         if len(ref.pending) > MAX_PENDING:     # long still periods: keep memory bounded (older
             ref.pending.pop(0)                 # waiting frames keep their 'waiting' pose)
         if gf.conf_frac < cfg.min_confident_frac:
@@ -183,7 +214,7 @@ class Initialiser:
         kf1 = WindowKeyframe(frame.stamp_ns, self.window.new_index(), gray, frame.rgb(),
                              self.ctx.texture(gray), two.T1, two.d[1].clone(), segment=seg.index)
         self.window.start(kf0, kf1, pair.fwd, pair.bwd)
-        out = self._repose_pending(kf0, kf1)
+        out = self._backfill_orphans(kf0) + self._repose_pending(kf0, kf1)
         pending = ref.pending[:-1]
         prev = (StampedPose(kf0.stamp, kf0.T_cw.clone()) if not pending else
                 StampedPose(pending[-1].stamp, torch.from_numpy(self.buffer.T_cw(pending[-1].stamp))))
@@ -192,7 +223,8 @@ class Initialiser:
         self.ref = None
         self.ctx.reason = (f"initialised segment {seg.index} from frames {kf0.stamp} and "
                            f"{kf1.stamp}: {100 * rel.inlier_frac:.0f}% essential-matrix inliers, "
-                           f"parallax {rel.parallax_px:.1f} px")
+                           f"parallax {rel.parallax_px:.1f} px, {100 * rel.wide_frac:.0f}% of the "
+                           f"inliers under a wide triangulation angle")
         self.ctx.events.append(self.ctx.reason)
         log.info(self.ctx.reason)
         self.ctx.stats["keyframes"] += 2
@@ -233,12 +265,19 @@ class Initialiser:
             ctx.reason = (f"waiting for parallax: a pure rotation explains the motion (median "
                           f"residual {rot_res:.2f} px); depth needs the camera to translate")
             return None
-        if par < cfg.init_min_parallax_lr_px * STRIDE:
+        # enough parallax: the median flow (sideways motion), or enough inliers seen under a wide
+        # triangulation angle (forward motion: most pixels lie near the focus of expansion)
+        ang = triangulation_angles_deg(p0[inl], p1[inl], ctx.Kmat, R) if inl.any() else np.zeros(0)
+        wide = float((ang >= cfg.init_min_angle_deg).mean()) if len(ang) else 0.0
+        wide_ok = cfg.init_min_wide_frac > 0 and wide >= cfg.init_min_wide_frac
+        if par < cfg.init_min_parallax_lr_px * STRIDE and not wide_ok:
             ctx.reason = (f"waiting for parallax: median rotation-compensated flow "
                           f"{par / STRIDE:.2f} px at 1/8 resolution (need "
-                          f"{cfg.init_min_parallax_lr_px:.2f})")
+                          f"{cfg.init_min_parallax_lr_px:.2f}) and {100 * wide:.0f}% of the inliers "
+                          f"triangulated under {cfg.init_min_angle_deg:g} deg or more (need "
+                          f"{100 * cfg.init_min_wide_frac:.0f}%)")
             return None
-        return RelativePose(R, t, frac, par)
+        return RelativePose(R, t, frac, par, wide)
 
     def _two_view(self, rel: RelativePose, pair: FlowPair) -> Optional[TwoView]:
         """Two-view BA of the reference and the current frame (world: the segment's anchor), scaled
@@ -276,6 +315,34 @@ class Initialiser:
         T_rel[:3, 3] *= s
         T1 = T_rel @ r.T_cw[0]
         return TwoView(r.T_cw[0], T1, r.d / s)
+
+    def _backfill_orphans(self, kf0: WindowKeyframe) -> list[PoseEstimate]:
+        """Estimates of the frames whose reference lost overlap before this initialisation (in time
+        order): flow from the first keyframe to each, newest first, each seeded with the previous
+        one's flow, and a motion-only BA against the keyframe's depths; from the first frame that
+        no longer overlaps the keyframe on, the older ones keep no pose (``unposed_why``)."""
+        ctx, cfg = self.ctx, self.ctx.cfg
+        out: list[PoseEstimate] = []
+        prior = None
+        for k in range(len(self.orphans) - 1, -1, -1):
+            stamp, gray = self.orphans[k]
+            pair = ctx.flow_pair(kf0.gray, gray, init01=prior, tex0=kf0.tex, both=False)
+            gf = pair.fwd
+            if gf.conf_frac < cfg.min_confident_frac:
+                self.unposed_why = (f"{k + 1} frame(s) before frame {stamp} share too little of the "
+                                    f"image with the first keyframe {kf0.stamp} (mean confidence "
+                                    f"{gf.conf_frac:.2f}) to be posed")
+                ctx.events.append(f"back-fill: {self.unposed_why}")
+                break
+            prior = pair.f01
+            mo = BA.motion_only(kf0.T_cw[None], kf0.d[None], ctx.rays, torch.from_numpy(gf.target)[None],
+                                torch.from_numpy(gf.weight)[None] * ctx.info_scale, ctx.K, kf0.T_cw,
+                                iters=cfg.track_iters, loss=cfg.robust_loss, delta=cfg.robust_delta_px)
+            out.append(self.buffer.record(stamp, kf0.stamp, mo.T_cw.numpy(), TrackState.TRACKING))
+        if out:
+            ctx.events.append(f"back-filled {len(out)} frame(s) before the reference frame {kf0.stamp}")
+        self.orphans = []
+        return out[::-1]
 
     def _repose_pending(self, kf0: WindowKeyframe, kf1: WindowKeyframe) -> list[PoseEstimate]:
         """Estimates of the new keyframes and of the frames that waited (motion-only against the

@@ -263,6 +263,24 @@ class Frontend:
                 "motion_detected": self.motion_detected,
                 "max_mean_flow_lr_px": self.max_mean_flow_lr, **self.stats}
 
+    def unposed(self) -> tuple[int, Optional[str]]:
+        """Processed frames without a tracked pose (waiting for an initialisation that never came
+        or could not reach back to them; lost) and, when there are any, why (one line)."""
+        states = self.buffer.frame_states()
+        waiting = sum(1 for s in states.values() if s == TrackState.WAITING)
+        lost = sum(1 for s in states.values() if s == TrackState.LOST)
+        if not waiting and not lost:
+            return 0, None
+        why = []
+        if waiting and self.state == TrackState.WAITING:
+            why.append(f"{waiting} frame(s) waiting for initialisation at the end: {self.reason}")
+        elif waiting:
+            why.append(f"{waiting} frame(s) before an initialisation: "
+                       f"{self.init.unposed_why or 'they did not overlap the first keyframe'}")
+        if lost:
+            why.append(f"{lost} frame(s) lost (tracking failed; see the events)")
+        return waiting + lost, "; ".join(why)
+
     # ---------------------------------------------------------------------------- helpers
 
     def _check_frame(self, frame: Frame) -> None:

@@ -48,6 +48,10 @@ class MapperConfig:
     # whose later training rounds keep training it (0 = every keyframe fully)
     catch_up_backlog: int = 0
     catch_up_iters: int = 10
+    # coarse iterations: this fraction of the window's training renders is done at 1/coarse_factor
+    # of the resolution (several times cheaper); they leave the scores and loss maps alone (0 = off)
+    coarse_fraction: float = 0.0
+    coarse_factor: int = 2
     sample_ratio: float = 0.5          # sample rasterizer: fraction r of pixels per tile back-propagated
     lambda_rgb: float = 1.0
     lambda_depth: float = 0.5
@@ -167,6 +171,10 @@ class MapperConfig:
             raise ValueError("catch_up_backlog and catch_up_iters must be >= 0")
         if not 0 <= self.history_ratio < 1:
             raise ValueError(f"history_ratio must be in [0, 1), got {self.history_ratio}")
+        if not 0 <= self.coarse_fraction < 1:
+            raise ValueError(f"coarse_fraction must be in [0, 1), got {self.coarse_fraction}")
+        if self.coarse_factor < 2:
+            raise ValueError(f"coarse_factor must be >= 2, got {self.coarse_factor}")
         if not 0 < self.sample_ratio <= 1:
             raise ValueError(f"sample_ratio must be in (0, 1], got {self.sample_ratio}")
         for name, kind in (("refine_mode", RefineMode), ("refine_solver", RefineSolver)):

@@ -27,6 +27,28 @@ from .state import MapState
 from ..profiling import timed
 
 
+def coarse_keyframe(kf: Keyframe, factor: int = 2) -> Keyframe:
+    """``kf`` at ``1/factor`` of its resolution (sizes cropped to a multiple of ``factor``): RGB
+    averaged over each ``factor x factor`` block; depth averaged over blocks whose pixels are all
+    valid (0 elsewhere, so depth edges are dropped, not blurred); inverse-depth variance the block's
+    largest; intrinsics scaled for OpenCV pixel centres (``c' = (c + 0.5) / f - 0.5``)."""
+    from ..types import CameraModel
+    f = int(factor)
+    cam = kf.camera
+    H, W = cam.height // f, cam.width // f
+
+    def blocks(t: torch.Tensor) -> torch.Tensor:       # (H*f, W*f, ...) -> (H, W, f*f, ...)
+        t = t[:H * f, :W * f]
+        t = t.reshape(H, f, W, f, *t.shape[2:]).transpose(1, 2)
+        return t.reshape(H, W, f * f, *t.shape[4:])
+    valid = blocks(kf.valid & (kf.depth > 0)).all(2)
+    depth = torch.where(valid, blocks(kf.depth).mean(2), torch.zeros((), dtype=kf.depth.dtype))
+    c = CameraModel(W, H, cam.fx / f, cam.fy / f, (cam.cx + 0.5) / f - 0.5, (cam.cy + 0.5) / f - 0.5)
+    return Keyframe(stamp_ns=kf.stamp_ns, image=blocks(kf.image).mean(2).contiguous(), T_wc=kf.T_wc,
+                    depth=depth.contiguous(), inv_depth_var=blocks(kf.inv_depth_var).amax(2).contiguous(),
+                    valid=valid, camera=c, index=kf.index)
+
+
 class Trainer:
     """Training of the map in ``st`` (:class:`MapState`); ``scores``: the score manager strategy
     whose hooks each step calls. Owns the shuffled round of window keyframes (``queue``) and the
@@ -36,7 +58,8 @@ class Trainer:
         self.st = st
         self.scores = scores
         self.queue: list[int] = []                  # shuffled round of window stamps
-        self._aux: dict[int, dict] = {}             # cached per-keyframe masks / weights
+        self._aux: dict[tuple[int, int], dict] = {}     # cached per-keyframe (and level) masks / weights
+        self._coarse: dict[int, tuple[torch.Tensor, Keyframe]] = {}    # coarse copies of window keyframes
 
     def new_round(self) -> None:
         """Start a new shuffled round (the window changed)."""
@@ -44,7 +67,17 @@ class Trainer:
 
     def forget(self, stamp: int) -> None:
         """Drop what is cached for keyframe ``stamp`` (it left the window)."""
-        self._aux.pop(stamp, None)
+        self._aux.pop((stamp, 0), None)
+        self._aux.pop((stamp, 1), None)
+        self._coarse.pop(stamp, None)
+
+    def coarse_of(self, kf: Keyframe) -> Keyframe:
+        """The coarse copy of window keyframe ``kf`` (cached while its depth is the same tensor)."""
+        c = self._coarse.get(kf.stamp_ns)
+        if c is None or c[0] is not kf.depth:
+            c = (kf.depth, coarse_keyframe(kf, self.st.cfg.coarse_factor))
+            self._coarse[kf.stamp_ns] = c
+        return c[1]
 
     def next_keyframe(self, queue: list[int]) -> Keyframe:
         """The next window keyframe of the shuffled round ``queue`` (refilled from the mapper's
@@ -58,7 +91,9 @@ class Trainer:
     def keyframe_aux(self, kf: Keyframe) -> dict:
         """Per-keyframe constant loss inputs, cached while the keyframe is in the window."""
         history = self.st.history
-        a = self._aux.get(kf.stamp_ns) if kf.stamp_ns not in history else None
+        key = (kf.stamp_ns, int(kf.camera.width != self.st.camera.width)) if self.st.camera is not None \
+            else (kf.stamp_ns, 0)
+        a = self._aux.get(key) if kf.stamp_ns not in history else None
         if a is None or a["T"] is not kf.depth:
             cfg = self.st.cfg
             a = {"T": kf.depth, "usable": usable_depth_mask(kf, cfg.max_depth, cfg.max_depth_rel_std),
@@ -66,7 +101,7 @@ class Trainer:
                  "masked": empty_mask(kf, cfg.max_depth),
                  "ssim_stats": ssim_target_stats(kf.image) if cfg.lambda_ssim > 0 else None}
             if kf.stamp_ns not in history:
-                self._aux[kf.stamp_ns] = a
+                self._aux[key] = a
         return a
 
     def losses(self, out, kf: Keyframe, it_terms: dict, with_normal: bool = True, with_acc: bool = True,
@@ -138,9 +173,16 @@ class Trainer:
         gm = st.gm
         hist = self.history_keyframe()
         kf = hist if hist is not None else self.next_keyframe(self.queue)
+        # a coarse iteration (cfg.coarse_fraction of the window's): the keyframe at 1/coarse_factor
+        # resolution; like a history keyframe it leaves the scores and loss maps alone
+        coarse = hist is None and cfg.coarse_fraction > 0 and \
+            float(torch.rand((), generator=st.rng)) < cfg.coarse_fraction
+        if coarse:
+            kf = self.coarse_of(kf)
+        scored = hist is None and not coarse
         T_cw = pose_inverse(kf.T_wc)
         leaves = {p: getattr(gm, p).detach().requires_grad_(True) for p in PARAM_FIELDS}
-        stale = None if hist is not None else st.loss_maps.get(kf.stamp_ns)
+        stale = st.loss_maps.get(kf.stamp_ns) if scored else None
         with timed("mapping", "render"):
             out = st.rasterize(gm, T_cw, kf.camera, sample_ratio=cfg.sample_ratio, loss_map=stale, **leaves)
         terms: dict = {}
@@ -156,7 +198,7 @@ class Trainer:
             loss.backward()
         terms["psnr"] = -10 * math.log10(max(float((out.color.detach().clamp(0, 1) - kf.image).pow(2).mean()), 1e-12))
         with torch.no_grad():
-            if hist is None:
+            if scored:
                 # score bookkeeping (window keyframes only; error w.r.t. the last loss map)
                 st.loss_maps[kf.stamp_ns] = l1.to(torch.float32)
                 with timed("mapping", "scores"):

@@ -1,0 +1,165 @@
+#!/usr/bin/env python3
+"""Initialisation of the visual front end: how soon a run starting anywhere gives live odometry.
+
+Experiments (``--exp``, comma list):
+
+* ``start_anywhere``: ``kitti06_snippet`` and ``kitti07_160`` (default working size 613x185) cut into
+  clips of ``--clip`` frames starting at every ``--every``-th frame; a fresh front end runs each
+  clip. Per clip: the first frame (0-based, within the clip) whose own ``process`` call returned a
+  tracking pose ("live", not back-filled), the frames posed at the end (back-filled included) and
+  the clip's ATE Sim(3). Summary: the fraction of clips live by the clip's ``--live-by``-th frame
+  (4th: index 3), the distribution of frames to initialise, the fraction of frames posed.
+* ``static``: ``euroc_v101_micro`` (camera still) at 376x240: the front end must never initialise.
+* ``rotation``: the synthetic room turned in place about the camera centre (no translation):
+  never initialise.
+
+The last stdout line is one JSON object (``benchmarks/_harness.py``).
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+HERE = Path(__file__).resolve().parent
+sys.path.insert(0, str(HERE))
+from _harness import run_experiments  # noqa: E402
+
+SHARED = HERE.parent.parent / "shared" / "data"
+
+
+def log(*a) -> None:
+    print("[bench init]", *a, file=sys.stderr, flush=True)
+
+
+def _frontend(cfg, camera):
+    from vings_core.frontend import Frontend
+    return Frontend(cfg, camera)
+
+
+def run_clip(frames, camera, cfg, gt) -> dict:
+    """A fresh front end over ``frames``; live and final states, ATE against ``gt`` (or None)."""
+    from vings_core.eval.traj import associate, ate
+    from vings_core.types import TrackState
+    fe = _frontend(cfg, camera)
+    live = None
+    t0 = time.perf_counter()
+    for k, f in enumerate(frames):
+        ests = fe.process(f)
+        fe.pop_keyframes()
+        own = [e for e in ests if e.stamp_ns == f.stamp_ns]
+        if live is None and own and own[-1].state == TrackState.TRACKING:
+            live = k
+    fe.finish()
+    wall = time.perf_counter() - t0
+    states = fe.frame_states()
+    posed = sum(1 for s in states.values() if s in (TrackState.TRACKING, TrackState.LOST))
+    res = {"live_at": live, "posed": posed, "frames": len(frames), "wall_s": round(wall, 2),
+           "reason": fe.status()["reason"]}
+    if gt is not None and posed >= 3:
+        est = fe.trajectory(states=("tracking", "lost"))
+        e, g = associate(est, gt, max_dt_ns=5_000_000)
+        if len(e) >= 3:
+            res["ate_sim3_m"] = ate(e, g, mode="sim3")["rmse_m"]
+    return res
+
+
+def _load(path: Path, width: int, height: int):
+    from vings_core.io import open_source
+    from vings_core.io.base import SourceOptions
+    src = open_source(path, SourceOptions(width=width, height=height))
+    return src, list(src.frames())
+
+
+def exp_start_anywhere(a, cfg) -> dict:
+    out: dict = {"clips": {}}
+    live_by, n_clips, frames_to_init, posed, total = 0, 0, [], 0, 0
+    for name in ("kitti06_snippet", "kitti07_160"):
+        p = SHARED / name
+        if not p.is_dir():
+            out["clips"][name] = {"skipped": f"{p} not found"}
+            continue
+        src, frames = _load(p, 613, 185)
+        gt = src.gt_camera_trajectory()
+        res = []
+        for s in range(0, len(frames) - a.clip + 1, a.every):
+            r = run_clip(frames[s:s + a.clip], src.calibration.camera, cfg, gt)
+            r["start"] = s
+            res.append(r)
+            log(f"{name} clip at {s}: live at {r['live_at']}, posed {r['posed']}/{r['frames']}, "
+                f"ATE {r.get('ate_sim3_m')}")
+            n_clips += 1
+            live_by += int(r["live_at"] is not None and r["live_at"] <= a.live_by - 1)
+            frames_to_init.append(r["live_at"] if r["live_at"] is not None else a.clip)
+            posed += r["posed"]
+            total += r["frames"]
+        out["clips"][name] = res
+    if n_clips:
+        f = np.asarray(frames_to_init)
+        out.update(clips=out["clips"], n_clips=n_clips, live_by_frac=live_by / n_clips,
+                   live_by_frame=a.live_by, posed_frac=posed / max(total, 1),
+                   frames_to_live={"median": float(np.median(f)), "p90": float(np.percentile(f, 90)),
+                                   "max": int(f.max()), "histogram": np.bincount(f).tolist()})
+    return out
+
+
+def exp_static(a, cfg) -> dict:
+    p = SHARED / "euroc_v101_micro"
+    if not p.is_dir():
+        return {"skipped": f"{p} not found"}
+    src, frames = _load(p, 376, 240)
+    r = run_clip(frames, src.calibration.camera, cfg, None)
+    return {"frames": r["frames"], "initialised": r["live_at"] is not None, "posed": r["posed"],
+            "reason": r["reason"]}
+
+
+def exp_rotation(a, cfg) -> dict:
+    from vings_core import sim
+    from vings_core.geometry import np_pose, np_so3_exp
+    from vings_core.types import Frame
+    scene = sim.make_scene("room", seed=0)
+    camera = sim.default_camera(376, 240)
+    T0 = scene.T_wc(np.array([0.0]))[0]
+    frames = []
+    for k in range(40):        # yaw 1 degree per frame about the camera centre
+        T = T0 @ np_pose(np_so3_exp(np.array([0.0, np.deg2rad(1.0) * k, 0.0])), np.zeros(3))
+        rgb = sim.render_view(scene, camera, T)[0]
+        frames.append(Frame(1_000_000_000 + k * 50_000_000, rgb, camera))
+    r = run_clip(frames, camera, cfg, None)
+    return {"frames": r["frames"], "initialised": r["live_at"] is not None, "posed": r["posed"],
+            "reason": r["reason"]}
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--exp", default="start_anywhere,static,rotation")
+    ap.add_argument("--clip", type=int, default=30, help="frames per clip")
+    ap.add_argument("--every", type=int, default=5, help="a clip starts at every n-th frame")
+    ap.add_argument("--live-by", type=int, default=4, help="live odometry by this frame of the clip (1-based)")
+    ap.add_argument("--params", default=None, help="params file with a 'frontend' section")
+    ap.add_argument("--set", action="append", default=[], help="frontend override, e.g. --set window=6")
+    a = ap.parse_args(argv)
+    from vings_core.config import load_section
+    from vings_core.frontend import FrontendConfig
+    cfg = load_section(FrontendConfig, "frontend", a.params)
+    for kv in a.set:
+        k, v = kv.split("=", 1)
+        cur = getattr(cfg, k)
+        setattr(cfg, k, type(cur)(v) if not isinstance(cur, bool) else v.lower() in ("1", "true", "yes"))
+    cfg.validate()
+    table = {"start_anywhere": lambda: exp_start_anywhere(a, cfg), "static": lambda: exp_static(a, cfg),
+             "rotation": lambda: exp_rotation(a, cfg)}
+    names = [e for e in a.exp.split(",") if e]
+    bad = [e for e in names if e not in table]
+    if bad:
+        ap.error(f"unknown experiment(s) {bad}; known: {', '.join(table)}")
+    out = {"config": vars(a), "load_avg_1m_start": os.getloadavg()[0]}
+    return run_experiments([(n, table[n]) for n in names], out, log)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
