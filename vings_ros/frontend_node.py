@@ -65,6 +65,7 @@ class FrontendNode(StageNode):
         self.rate = RateMeter()
         self.imu_count = 0
         self.bad_imu = 0
+        self.late_poses = 0         # back-filled odometry published after its frame (initialisation)
         self.frames_without_camera = 0
         self.bad_frames = 0
         self.bad_streak = 0             # images skipped since the last one processed
@@ -198,6 +199,9 @@ class FrontendNode(StageNode):
         ests = self.frontend.process(frame)
         for est in ests:
             if est.state is TrackState.TRACKING:
+                # a back-filled pose (a frame that waited for initialisation) is published late,
+                # in stamp order, before the current frame's; /diagnostics counts them
+                self.late_poses += int(est.stamp_ns != stamp)
                 self.pub_odom.publish(estimate_to_odometry(est, self.ros.world_frame,
                                                            self.ros.camera_frame, T.ODOMETRY_TOPIC))
         # as in `vings run`: moved keyframe poses first, then the new keyframes
@@ -247,6 +251,7 @@ class FrontendNode(StageNode):
                   "bad_frames": self.bad_frames, "bad_streak": self.bad_streak,
                   "camera_changes": self.camera_changes,
                   "imu_samples": self.imu_count, "bad_imu": self.bad_imu,
+                  "late_poses": self.late_poses,
                   **self._exchange_values()}
         if self.bad_streak >= BAD_STREAK_ERROR:
             # images arrive but none can be used (wrong size after a camera change, bad encoding)

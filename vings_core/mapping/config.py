@@ -46,7 +46,7 @@ class MapperConfig:
     # keeping up: a keyframe mapped while at least catch_up_backlog more wait behind it is trained
     # lightly (catch_up_iters iterations, no pose refinement); it stays in the map and in the window,
     # whose later training rounds keep training it (0 = every keyframe fully)
-    catch_up_backlog: int = 0
+    catch_up_backlog: int = 2
     catch_up_iters: int = 10
     # coarse iterations: this fraction of the window's training renders is done at 1/coarse_factor
     # of the resolution (several times cheaper); they leave the scores and loss maps alone (0 = off)
