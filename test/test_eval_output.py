@@ -17,7 +17,7 @@ from vings_core.types import Trajectory
 
 CONTRACT_KEYS = ["frames", "frames_tracked", "keyframes", "wall_s", "fps", "ate_sim3_m", "ate_se3_m",
                  "sim3_scale", "rpe", "psnr_keyframes_db", "psnr_novel_db", "ssim_keyframes",
-                 "num_gaussians", "peak_rss_mb", "keyframes_light", "queue_peak_keyframes", "queue_spilled", "frames_unposed", "frames_unposed_reason"]
+                 "num_gaussians", "peak_rss_mb", "keyframes_light", "queue_peak_keyframes", "queue_spilled", "frames_unposed", "frames_unposed_reason", "segments", "ate_segments_m"]
 
 
 def test_metric_keys_are_the_contract():
@@ -502,3 +502,28 @@ def test_prepare_removes_an_interrupted_earlier_runs_partial_files(tmp_path):
     out.write_metrics(metrics_template())
     out.prepare()
     assert sorted(p.name for p in out.out_dir.iterdir()) == ["metrics.json", "renders"]
+
+
+def test_a_run_with_a_covered_lens_writes_its_segments(tmp_path):
+    """Tracking lost for a second (lens covered): segments.json and trajectory_segments/ hold each
+    map segment, trajectory.tum the main one, metrics count them with an ATE each."""
+    import json as _json
+    from vings_core.io import open_source
+    from vings_core.pipeline import RunConfig, SlamRunner
+    from vings_core.sim import generate
+    from vings_core.trajectory_io import read_tum
+    d = generate("room", tmp_path / "blind", frames=90, width=192, height=128, seed=5, mcap=False,
+                 blind=(1.5, 2.5))
+    out = tmp_path / "o"
+    m = SlamRunner(open_source(d), out, _fast_params(tmp_path), RunConfig(sync=True, eval_keyframes=2,
+                   eval_novel=2), progress=False).run()
+    segs = _json.loads((out / "segments.json").read_text())["segments"]
+    assert m["segments"] == len(segs) >= 2 and len(m["ate_segments_m"]) == len(segs)
+    main = [s for s in segs if s["in_trajectory"]]
+    assert len(main) == 1 and main[0]["frames"] == max(s["frames"] for s in segs) == m["frames_tracked"]
+    for s in segs:
+        t = read_tum(out / "trajectory_segments" / f"segment_{s['index']}.tum")
+        assert len(t) == s["frames"] and t.stamps_ns[0] == s["first_stamp_ns"]
+        assert s["joined_to"] is None
+    assert len(read_tum(out / "trajectory.tum")) == main[0]["frames"]
+    assert m["frames_unposed"] >= 20 and "frame" in m["frames_unposed_reason"]

@@ -389,3 +389,33 @@ def test_keyframe_pose_changes_are_reported_without_scanning_the_history(box_seq
     tr = fe.trajectory(max_poses=5)
     full = fe.trajectory()
     assert len(tr) == 5 and tr.stamps_ns[0] == full.stamps_ns[0] and tr.stamps_ns[-1] == full.stamps_ns[-1]
+
+
+def test_covered_lens_starts_a_new_segment_soon_after_it_clears():
+    """One second of black frames (lens covered) while tracking, visual only: tracking is lost, a
+    new map segment starts within 0.5 s of the lens clearing, and the frames that can be posed
+    are posed in one segment or the other."""
+    scene = make_box_scene(seed=1)
+    poses = orbit_trajectory(70, radius=1.5, arc=3.0)
+    blind = range(25, 45)                     # 20 frames at 20 Hz
+    fe = Frontend(_cfg(), CAM)
+    frames = []
+    for k, T in enumerate(poses):
+        img = render_box(scene, CAM, T)[0]
+        if k in blind:
+            img = np.random.default_rng(k).integers(0, 4, img.shape, dtype=np.uint8)
+        frames.append(Frame(1_000_000_000 + k * STEP_NS, img, CAM))
+        fe.process(frames[-1])
+        fe.pop_keyframes()
+    fe.finish()
+    segs = fe.segments()
+    assert len(segs) == 2, segs
+    first_after = (segs[1]["first_stamp_ns"] - frames[blind[-1] + 1].stamp_ns) / 1e9
+    live = [k for k in range(blind[-1] + 1, len(frames))
+            if fe.frame_states()[frames[k].stamp_ns] == "tracking"]
+    assert first_after <= 0.5 and (live[0] - blind[-1] - 1) * STEP_NS / 1e9 <= 0.5, (first_after, live[:3])
+    seeing = [f for k, f in enumerate(frames) if k not in blind]
+    posed = sum(1 for f in seeing if fe.frame_states()[f.stamp_ns] == "tracking")
+    assert posed >= 0.95 * len(seeing), (posed, len(seeing))
+    n0 = len(fe.trajectory(states=("tracking",), segments={segs[0]["index"]}))
+    assert n0 == segs[0]["frames"] and segs[0]["last_stamp_ns"] < frames[blind[0]].stamp_ns + 5 * STEP_NS

@@ -560,3 +560,21 @@ def test_too_many_street_frames_names_the_frames():
     from vings_core.errors import ConfigError
     with pytest.raises(ConfigError, match=r"--frames 100000 at 20 fps needs a street of 60.0 km.*at most 83317 frames"):
         generate("street", "/nonexistent/never-written", frames=100000)
+
+
+def test_blind_interval_covers_the_lens_and_nothing_else(tmp_path):
+    """--blind T0:T1: the images in the interval are black (sensor noise only); depth and ground
+    truth are those of the scene; a bad interval is a clear error."""
+    import cv2
+    from vings_core.errors import ConfigError
+    from vings_core.sim import generate, load_summary
+    out = generate("room", tmp_path / "b", frames=6, width=64, height=48, mcap=False, fps=20.0,
+                   blind=(0.1, 0.2))
+    pngs = sorted((out / "mav0" / "cam0" / "data").glob("*.png"))
+    means = [float(cv2.imread(str(p)).mean()) for p in pngs]
+    assert [m < 3 for m in means] == [False, False, True, True, False, False], means
+    assert np.load(sorted((out / "mav0" / "depth0" / "data").glob("*.npy"))[2]).max() > 0
+    s = load_summary(out)
+    assert s["blind_frames"] == 2 and any("lens covered" in n for n in s["notes"])
+    with pytest.raises(ConfigError, match="blind interval"):
+        generate("room", tmp_path / "c", frames=4, width=32, height=24, mcap=False, blind=(0.3, 0.1))

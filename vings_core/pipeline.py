@@ -529,11 +529,39 @@ class SlamRunner:
 
     # ------------------------------------------------------------------------------ outputs
 
-    def trajectory(self) -> Trajectory:
-        """Every tracked frame's cam0 ``T_wc``."""
+    def main_segment(self) -> Optional[int]:
+        """The front end's map segment with the most tracked frames (the earliest of equals), the
+        one ``trajectory.tum`` holds; None without a front end or before any tracking."""
+        segs = self.frontend.segments() if self.frontend is not None else []
+        if not segs:
+            return None
+        return max(segs, key=lambda d: (d["frames"], -d["index"]))["index"]
+
+    def trajectory(self, segment: Optional[int] = -1) -> Trajectory:
+        """Tracked frames' cam0 ``T_wc``: of the main segment (``segment=-1``, see
+        :meth:`main_segment`: segments are not joined into one frame yet), of one segment, or
+        (``None``) of every segment."""
         if self.frontend is None:
             return Trajectory.from_poses(self._gt_poses)
-        return self.frontend.trajectory(states=(TrackState.TRACKING,))
+        if segment == -1:
+            segment = self.main_segment()
+        return self.frontend.trajectory(states=(TrackState.TRACKING,),
+                                        segments=None if segment is None else {segment})
+
+    def _segment_records(self, gt: Optional[Trajectory]) -> list[dict]:
+        """``segments.json`` entries (the front end's segments, whether each is in
+        ``trajectory.tum``, its ATE Sim(3) against ``gt`` when there are 3 frames or more)."""
+        main = self.main_segment()
+        out = []
+        for d in self.frontend.segments():
+            rec = dict(d, joined_to=None, in_trajectory=d["index"] == main, ate_sim3_m=None)
+            if gt is not None and d["frames"] >= 3:
+                try:
+                    rec["ate_sim3_m"] = evaluate_trajectory(self.trajectory(d["index"]), gt).get("ate_sim3_m")
+                except InputError as e:
+                    log.warning("segment %d: trajectory evaluation skipped: %s", d["index"], e)
+            out.append(rec)
+        return out
 
     def keyframe_trajectory(self) -> Trajectory:
         return Trajectory.from_poses(self.mapper.keyframe_poses())
@@ -582,9 +610,18 @@ class SlamRunner:
                 m.update({k: ev.get(k) for k in ("ate_sim3_m", "ate_se3_m", "sim3_scale", "rpe")})
             except InputError as e:
                 log.warning("trajectory evaluation skipped: %s", e)
+        segments = None
+        if self.frontend is not None:
+            segments = self._segment_records(gt)
+            m.update(segments=len(segments),
+                     ate_segments_m=[d["ate_sim3_m"] for d in segments] if gt is not None else None)
+            if len(segments) > 1:
+                log.warning("tracking was lost: %d map segments; trajectory.tum holds segment %s "
+                            "(%d frames), trajectory_segments/ each one in its own frame",
+                            len(segments), self.main_segment(), len(traj))
         images, renders = self._image_metrics(kf_traj, traj)
         m.update(images)
-        return {"traj": traj, "kf_traj": kf_traj, "metrics": m, "renders": renders}
+        return {"traj": traj, "kf_traj": kf_traj, "metrics": m, "renders": renders, "segments": segments}
 
     def _write_final(self, final: dict, t0: float) -> dict:
         """Replace the previous run's files by this run's, ``metrics.json`` last. Everything is
@@ -595,6 +632,9 @@ class SlamRunner:
         try:
             out.write_trajectory(final["traj"], staged=True)
             out.write_keyframes(final["kf_traj"], staged=True)
+            if final["segments"] is not None:
+                out.write_segments(final["segments"], {d["index"]: self.trajectory(d["index"])
+                                                       for d in final["segments"]}, staged=True)
             self.mapper.save_ply(out.staging_path(out.map_path))
             self.mapper.save_checkpoint(out.staging_path(out.checkpoint_path))
             for name, rgb in final["renders"].items():

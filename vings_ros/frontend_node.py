@@ -244,7 +244,8 @@ class FrontendNode(StageNode):
         st = self.frontend.status() if self.frontend is not None else {
             "state": "waiting", "reason": "no calibration yet"}
         state = st.get("state", "waiting")
-        values = {"state": state, "reason": st.get("reason", ""), "frames": st.get("frames", 0),
+        values = {"state": state, "reason": st.get("reason", ""), "segment": st.get("segment", 0),
+                  "frames": st.get("frames", 0),
                   "keyframes": st.get("keyframes", 0), "rate_hz": self.rate.hz,
                   "queue_length": len(self.queue), "queue_policy": self.queue.policy,
                   "frames_dropped": self.queue.dropped, "frames_received": self.queue.received,

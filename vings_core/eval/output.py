@@ -2,7 +2,8 @@
 
 An output folder holds::
 
-    trajectory.tum   every frame after initialisation, cam0 T_wc, TUM (ns stamps, 9 decimals)
+    trajectory.tum   the tracked frames of the main map segment, cam0 T_wc, TUM (ns stamps, 9 decimals)
+    segments.json    the map segments (a new one after tracking was lost), trajectory_segments/ each
     keyframes.tum    the keyframes' final poses, cam0 T_wc, TUM
     map.ply          the 2D Gaussian map (written by the mapper, not here)
     metrics.json     one object with exactly the keys of METRIC_KEYS (null where not applicable)
@@ -32,6 +33,8 @@ from ..util import atomic_write_bytes, atomic_write_text, log, probe_writable_di
 TRAJECTORY_FILE = "trajectory.tum"
 KEYFRAMES_FILE = "keyframes.tum"
 MAP_FILE = "map.ply"
+SEGMENTS_FILE = "segments.json"
+SEGMENTS_DIR = "trajectory_segments"
 METRICS_FILE = "metrics.json"
 RENDERS_DIR = "renders"
 CHECKPOINT_FILE = "checkpoint.pt"
@@ -50,10 +53,10 @@ METRIC_KEYS = (
     "psnr_keyframes_db", "psnr_novel_db", "ssim_keyframes",
     "num_gaussians", "peak_rss_mb",
     "keyframes_light", "queue_peak_keyframes", "queue_spilled",
-    "frames_unposed", "frames_unposed_reason",
+    "frames_unposed", "frames_unposed_reason", "segments", "ate_segments_m",
 )
 _INT_KEYS = {"frames", "frames_tracked", "keyframes", "num_gaussians", "keyframes_light",
-             "queue_peak_keyframes", "queue_spilled", "frames_unposed"}
+             "queue_peak_keyframes", "queue_spilled", "frames_unposed", "segments"}
 _STR_KEYS = {"frames_unposed_reason"}
 #: Keys of :func:`vings_core.eval.traj.evaluate_trajectory`'s result that go into metrics.json.
 TRAJECTORY_METRIC_KEYS = ("ate_sim3_m", "ate_se3_m", "sim3_scale", "rpe")
@@ -91,7 +94,8 @@ def validate_metrics(metrics: dict) -> dict:
 
     Unknown keys raise ValueError (a programming error); missing keys become None; non-finite
     numbers (e.g. the PSNR of identical images) become None; ``rpe`` must be a dict or None,
-    ``frames_unposed_reason`` a string or None; the other values numbers or None."""
+    ``frames_unposed_reason`` a string or None, ``ate_segments_m`` a list of numbers or nulls or
+    None; the other values numbers or None."""
     unknown = [k for k in metrics if k not in METRIC_KEYS]
     if unknown:
         raise ValueError(f"unknown metrics key(s) {unknown}; allowed: {list(METRIC_KEYS)}")
@@ -101,6 +105,10 @@ def validate_metrics(metrics: dict) -> dict:
         if k == "rpe":
             if v is not None and not isinstance(v, dict):
                 raise ValueError(f"metrics 'rpe' must be a dict or None, got {type(v).__name__}")
+        elif k == "ate_segments_m":
+            if v is not None and not (isinstance(v, list) and all(
+                    x is None or (isinstance(x, (int, float)) and not isinstance(x, bool)) for x in v)):
+                raise ValueError(f"metrics 'ate_segments_m' must be a list of numbers or nulls, got {v!r}")
         elif k in _STR_KEYS:
             if v is not None and not isinstance(v, str):
                 raise ValueError(f"metrics {k!r} must be a string or None, got {v!r}")
@@ -188,13 +196,17 @@ class RunOutput:
     def begin_final(self) -> None:
         """At the end of a run, before its final files: remove what would make the previous run's
         outputs look like this run's: ``metrics.json`` (written last: its presence marks a
-        complete run) and the runner's renders ``renders/kf_*.png`` (other files there are not
-        ours and stay). The other files are replaced when written."""
+        complete run), the runner's renders ``renders/kf_*.png`` (other files there are not
+        ours and stay) and the segment trajectories ``trajectory_segments/segment_*.tum``. The other files are replaced when written."""
         try:
             if self.metrics_path.exists():
                 self.metrics_path.unlink()
             if self.renders_dir.is_dir():
                 for p in self.renders_dir.glob(f"{RUN_RENDER_PREFIX}*.png"):
+                    p.unlink()
+            seg_dir = self.out_dir / SEGMENTS_DIR      # the previous run may have had more segments
+            if seg_dir.is_dir():
+                for p in seg_dir.glob("segment_*.tum"):
                     p.unlink()
             self.renders_dir.mkdir(exist_ok=True)
         except OSError as e:
@@ -284,6 +296,20 @@ class RunOutput:
         """Keyframe poses (stamp = keyframe identity), cam0 ``T_wc`` -> ``keyframes.tum``."""
         path = self.staging_path(self.keyframes_path) if staged else self.keyframes_path
         write_tum(path, traj)
+        return path
+
+    def write_segments(self, segments: list[dict], trajectories: dict[int, Trajectory],
+                       staged: bool = False) -> Path:
+        """``segments.json`` (``{"segments": [...]}``, one entry per map segment) and
+        ``trajectory_segments/segment_<index>.tum`` for each (``staged``: to the staging folder).
+        Returns the path of ``segments.json``."""
+        path = self.out_dir / SEGMENTS_FILE
+        if staged:
+            path = self.staging_path(path)
+        for k, traj in trajectories.items():
+            p = self.out_dir / SEGMENTS_DIR / f"segment_{int(k)}.tum"
+            write_tum(self.staging_path(p) if staged else p, traj)
+        atomic_write_text(path, json.dumps({"segments": segments}, indent=2, allow_nan=False) + "\n")
         return path
 
     def write_metrics(self, metrics: dict) -> dict:

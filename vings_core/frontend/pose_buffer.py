@@ -22,13 +22,15 @@ from ..types import PoseEstimate, Trajectory, TrackState
 class PoseRecord:
     """One processed frame: ``ref`` is its reference keyframe's stamp (``None``: absolute),
     ``T_rel`` is ``T_c_kf`` (frame from keyframe) with a reference, else ``T_cw``; ``state`` and
-    ``covariance`` as in the frame's :class:`~vings_core.types.PoseEstimate`."""
+    ``covariance`` as in the frame's :class:`~vings_core.types.PoseEstimate`; ``segment``: the map
+    segment its pose belongs to (its own world frame and scale)."""
 
     ref: Optional[int]
     T_rel: np.ndarray
     state: TrackState
     is_keyframe: bool = False
     covariance: Optional[np.ndarray] = None
+    segment: int = 0
 
 
 class PoseBuffer:
@@ -42,6 +44,7 @@ class PoseBuffer:
         self.version = 0
         #: keyframe stamp -> ``version`` at its last write, in write order
         self._kf_written: dict[int, int] = {}
+        self.segment = 0        #: the map segment that :meth:`record` assigns frames to
 
     def __contains__(self, stamp: int) -> bool:
         return int(stamp) in self._records
@@ -68,7 +71,7 @@ class PoseBuffer:
             T_rel = T_cw
         if stamp not in self._records:
             self._order.append(stamp)
-        self._records[stamp] = PoseRecord(ref, T_rel, state, is_kf, cov)
+        self._records[stamp] = PoseRecord(ref, T_rel, state, is_kf, cov, self.segment)
         return PoseEstimate(stamp, np.linalg.inv(T_cw), cov, state, is_kf)
 
     def set_keyframe_pose(self, stamp: int, T_cw: np.ndarray) -> None:
@@ -105,10 +108,13 @@ class PoseBuffer:
             raise InputError(f"frontend.pose: stamp {stamp_ns} was never processed by the front end")
         return np.linalg.inv(self.T_cw(int(stamp_ns)))
 
-    def trajectory(self, states: tuple[str, ...], max_poses: Optional[int] = None) -> Trajectory:
-        """Every processed frame's current ``T_wc`` whose latest state is in ``states``; at most
-        ``max_poses`` of them, evenly spread (first and last kept)."""
-        st = [s for s in self._order if self._records[s].state in states]
+    def trajectory(self, states: tuple[str, ...], max_poses: Optional[int] = None,
+                   segments: Optional[set[int]] = None) -> Trajectory:
+        """Every processed frame's current ``T_wc`` whose latest state is in ``states`` (and whose
+        segment is in ``segments``, if given); at most ``max_poses`` of them, evenly spread (first
+        and last kept)."""
+        st = [s for s in self._order if self._records[s].state in states
+              and (segments is None or self._records[s].segment in segments)]
         if max_poses is not None and len(st) > max_poses:
             idx = np.linspace(0, len(st) - 1, max(int(max_poses), 2)).round().astype(int)
             st = [st[i] for i in idx]
@@ -120,6 +126,22 @@ class PoseBuffer:
         st = sorted(self._kf_T_cw)
         poses = np.stack([self.pose(s) for s in st]) if st else np.zeros((0, 4, 4))
         return Trajectory(np.asarray(st, np.int64), poses)
+
+    def segments(self) -> list[dict]:
+        """Per map segment with tracked frames, in order: ``index``, ``first_stamp_ns``,
+        ``last_stamp_ns``, ``frames`` (tracked), ``keyframes``."""
+        out: dict[int, dict] = {}
+        for s in self._order:
+            r = self._records[s]
+            if r.state != TrackState.TRACKING:
+                continue
+            d = out.setdefault(r.segment, {"index": r.segment, "first_stamp_ns": s, "last_stamp_ns": s,
+                                           "frames": 0, "keyframes": 0})
+            d["first_stamp_ns"] = min(d["first_stamp_ns"], s)
+            d["last_stamp_ns"] = max(d["last_stamp_ns"], s)
+            d["frames"] += 1
+            d["keyframes"] += int(r.is_keyframe)
+        return [out[k] for k in sorted(out)]
 
     def frame_states(self) -> dict[int, TrackState]:
         """Latest state of every processed frame, in processing order."""

@@ -202,11 +202,19 @@ class Frontend:
         """Current best ``T_wc`` of a processed frame (4x4 float64)."""
         return self.buffer.pose(stamp_ns)
 
-    def trajectory(self, states: tuple[str, ...] = STATES, max_poses: Optional[int] = None) -> Trajectory:
+    def trajectory(self, states: tuple[str, ...] = STATES, max_poses: Optional[int] = None,
+                   segments: Optional[set[int]] = None) -> Trajectory:
         """Every processed frame's current ``T_wc`` (cam0-to-world), optionally only those whose
-        latest state is in ``states``; ``max_poses``: at most that many, evenly spread over them
-        (first and last kept), so a periodic display of a long run does not cost O(history) poses."""
-        return self.buffer.trajectory(states, max_poses)
+        latest state is in ``states`` and whose map segment is in ``segments``; ``max_poses``: at
+        most that many, evenly spread over them (first and last kept), so a periodic display of a
+        long run does not cost O(history) poses."""
+        return self.buffer.trajectory(states, max_poses, segments)
+
+    def segments(self) -> list[dict]:
+        """The map segments with tracked frames (a new one starts when tracking is lost for
+        ``relocalize_frames`` frames; each has its own world frame and scale): ``index``,
+        ``first_stamp_ns``, ``last_stamp_ns``, ``frames``, ``keyframes``."""
+        return self.buffer.segments()
 
     def keyframes_moved_since(self, version: int) -> list[int]:
         """Keyframes whose pose was written (window BA, :meth:`set_poses`, a new keyframe) after
@@ -388,6 +396,7 @@ class Frontend:
         depth = self.win.close_segment()
         last = self.motion.last
         self.init.next_segment(last.T_cw.numpy().copy() if last is not None else None, depth)
+        self.buffer.segment = self.init.segment.index
         self.stats["segments"] += 1
         self.motion.reset()
         self._fails = 0

@@ -169,15 +169,22 @@ def _check_out_dir(out: Path) -> None:
 def generate(scene_name: str, out_dir, frames: Optional[int] = None, width: int = 376,
              height: int = 240, seed: int = 0, dynamic: bool = False, loop: bool = False,
              length_m: Optional[float] = None, mcap: bool = True, fps: float = 20.0,
-             noise: bool = True, progress: bool = False) -> Path:
+             noise: bool = True, progress: bool = False,
+             blind: Optional[tuple[float, float]] = None) -> Path:
     """Render scene ``scene_name`` and write it as an EuRoC/ASL folder at ``out_dir`` (and, if
     ``mcap``, ``<out_dir>/<scene>.mcap`` via :func:`vings_core.io.write_mcap`). Returns ``out_dir``.
 
     ``frames``: number of camera frames (room default 300; street default: the whole route,
     ``length_m`` m, default 400, or the whole loop). ``fps``: camera rate (must divide 200 Hz).
     ``noise=False`` writes the exact IMU (no noise, zero biases). ``seed`` fixes scene, motion and
-    noise. The summary (see :func:`summarize`) is saved as ``<out_dir>/sim.json``.
+    noise. ``blind``: ``(start, end)`` seconds after the first frame during which the lens is
+    covered: those images are black with sensor noise (depth, masks, ground truth and IMU as
+    usual). The summary (see :func:`summarize`) is saved as ``<out_dir>/sim.json``.
     """
+    if blind is not None:
+        b0, b1 = (float(v) for v in blind)
+        if not (np.isfinite(b0) and np.isfinite(b1) and 0 <= b0 < b1):
+            raise ConfigError(f"blind interval must be 0 <= start < end seconds, got {blind}")
     wall0 = time.time()
     out = Path(out_dir).expanduser().absolute()
     frames_req, length_m = _plan(scene_name, frames, fps, loop, length_m)
@@ -201,7 +208,10 @@ def generate(scene_name: str, out_dir, frames: Optional[int] = None, width: int 
     try:
         dirs = _make_mav0(tmp / "mav0")
         stamps = T0_NS + frame_ns
-        stats = _render_all(scene, camera, T_wc, t_frames, stamps, dirs, progress)
+        stats = _render_all(scene, camera, T_wc, t_frames, stamps, dirs, progress, blind)
+        if blind is not None:
+            notes.append(f"lens covered from {blind[0]:g} s to {blind[1]:g} s: "
+                         f"{stats['blind_frames']} black frames")
         _write_camera_files(dirs, stamps, camera, scene.T_bc, fps)
         _write_imu_files(dirs, T0_NS + imu_ns, imu, gt, noise_cfg)
 
@@ -314,9 +324,12 @@ def _write_imu_files(dirs: dict[str, Path], istamps: np.ndarray, imu: ImuData, g
 
 
 def _render_all(scene: Scene, camera, T_wc: np.ndarray, t_frames: np.ndarray, stamps: np.ndarray,
-                dirs: dict, progress: bool) -> dict:
-    """Render every frame; PNG/NPY encoding overlaps with rendering on a worker thread."""
+                dirs: dict, progress: bool, blind: Optional[tuple[float, float]] = None) -> dict:
+    """Render every frame; PNG/NPY encoding overlaps with rendering on a worker thread. Frames in
+    the ``blind`` interval (s after the first frame) get a black image with sensor noise."""
     import cv2
+    dark = np.random.default_rng(7)
+    n_blind = 0
 
     n = len(t_frames)
     dyn_px = np.zeros(n)
@@ -340,6 +353,9 @@ def _render_all(scene: Scene, camera, T_wc: np.ndarray, t_frames: np.ndarray, st
         for i in it:
             t0 = time.perf_counter()
             rgb, depth, mask = render_view(scene, camera, T_wc[i], float(t_frames[i]))
+            if blind is not None and blind[0] <= t_frames[i] - t_frames[0] < blind[1]:
+                rgb = dark.integers(0, 4, rgb.shape, dtype=np.uint8)     # covered lens
+                n_blind += 1
             render_s += time.perf_counter() - t0
             valid = depth > 0
             if valid.any():
@@ -356,7 +372,7 @@ def _render_all(scene: Scene, camera, T_wc: np.ndarray, t_frames: np.ndarray, st
             "depth_range_m": [round(dmin, 4) if np.isfinite(dmin) else None, round(dmax, 4)],
             "sky_fraction": round(float(sky_frac.mean()), 4),
             "dynamic_pixel_fraction": round(float(dyn_px.mean()), 5),
-            "frames_with_dynamic": int((dyn_px > 0).sum())}
+            "frames_with_dynamic": int((dyn_px > 0).sum()), "blind_frames": n_blind}
 
 
 def summarize(scene: Scene, camera, gt, t_frames: np.ndarray, fps: float, seed: int, noise: bool,

@@ -7,6 +7,17 @@ import json
 from .argtypes import image_side, int_at_least
 
 
+def _interval(text: str) -> tuple[float, float]:
+    """``T0:T1`` seconds, 0 <= T0 < T1."""
+    try:
+        a, b = (float(v) for v in text.split(":"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected T0:T1 in seconds (e.g. 2:3), got {text!r}") from None
+    if not (0 <= a < b < float("inf")):
+        raise argparse.ArgumentTypeError(f"need 0 <= T0 < T1, got {text!r}")
+    return a, b
+
+
 def register(subparsers) -> None:
     p = subparsers.add_parser(
         "sim", help="generate a synthetic sequence (room or street) with exact ground truth",
@@ -31,6 +42,8 @@ def register(subparsers) -> None:
     p.add_argument("--seed", type=int_at_least(0), default=0, help="seed of scene, motion and IMU noise (>= 0)")
     p.add_argument("--no-noise", action="store_true", help="exact IMU: no noise, zero biases")
     p.add_argument("--no-mcap", action="store_true", help="skip the ROS 2 MCAP")
+    p.add_argument("--blind", type=_interval, default=None, metavar="T0:T1",
+                   help="lens covered from T0 to T1 seconds after the first frame (black images)")
     p.add_argument("--progress", action="store_true", help="show a progress bar")
     p.set_defaults(func=run)
 
@@ -41,6 +54,6 @@ def run(args) -> int:
     out = generate(args.scene, args.out, frames=args.frames, width=args.width, height=args.height,
                    seed=args.seed, dynamic=args.dynamic, loop=args.loop, length_m=args.length_m,
                    mcap=not args.no_mcap, fps=args.fps, noise=not args.no_noise,
-                   progress=args.progress)
+                   progress=args.progress, blind=args.blind)
     print(json.dumps(load_summary(out), indent=2))
     return 0
