@@ -9,6 +9,8 @@ Experiments (``--exp``, comma list):
   tracking pose ("live", not back-filled), the frames posed at the end (back-filled included) and
   the clip's ATE Sim(3). Summary: the fraction of clips live by the clip's ``--live-by``-th frame
   (4th: index 3), the distribution of frames to initialise, the fraction of frames posed.
+* ``lowrate``: every 3rd and 5th image of ``kitti07_160``, of the synthetic room (and every 10th:
+  2 Hz) and street (300 frames at 20 Hz, 376x240): images to live odometry, images posed, ATE.
 * ``static``: ``euroc_v101_micro`` (camera still) at 376x240: the front end must never initialise.
 * ``rotation``: the synthetic room turned in place about the camera centre (no translation):
   never initialise.
@@ -107,6 +109,29 @@ def exp_start_anywhere(a, cfg) -> dict:
     return out
 
 
+def exp_lowrate(a, cfg) -> dict:
+    """Every k-th image of ``kitti07_160`` (k = 3, 5), of the synthetic room (3, 5, 10: 2 Hz) and
+    street (3, 5): images to live odometry, images posed, ATE Sim(3) against the same run at the
+    full rate."""
+    import frontend as fb
+    work = Path(os.environ.get("TMPDIR", "/tmp")) / "vings_bench_frontend"
+    out = {}
+    for name, steps in (("kitti07", (1, 3, 5)), ("room", (1, 3, 5, 10)), ("street", (1, 3, 5))):
+        src = fb._source(name, work, a.lowrate_frames)
+        if src is None:
+            out[name] = {"skipped": "data not found"}
+            continue
+        frames = list(src.frames())
+        gt = src.gt_camera_trajectory()
+        res = {}
+        for k in steps:
+            r = run_clip(frames[::k], src.calibration.camera, cfg, gt)
+            res[f"every_{k}"] = {key: r.get(key) for key in ("frames", "live_at", "posed", "ate_sim3_m", "reason")}
+            log(f"{name} every {k}: {res[f'every_{k}']}")
+        out[name] = res
+    return out
+
+
 def exp_static(a, cfg) -> dict:
     p = SHARED / "euroc_v101_micro"
     if not p.is_dir():
@@ -136,10 +161,11 @@ def exp_rotation(a, cfg) -> dict:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--exp", default="start_anywhere,static,rotation")
+    ap.add_argument("--exp", default="start_anywhere,lowrate,static,rotation")
     ap.add_argument("--clip", type=int, default=30, help="frames per clip")
     ap.add_argument("--every", type=int, default=5, help="a clip starts at every n-th frame")
     ap.add_argument("--live-by", type=int, default=4, help="live odometry by this frame of the clip (1-based)")
+    ap.add_argument("--lowrate-frames", type=int, default=300, help="synthetic frames of the low-rate test")
     ap.add_argument("--params", default=None, help="params file with a 'frontend' section")
     ap.add_argument("--set", action="append", default=[], help="frontend override, e.g. --set window=6")
     a = ap.parse_args(argv)
@@ -152,6 +178,7 @@ def main(argv=None) -> int:
         setattr(cfg, k, type(cur)(v) if not isinstance(cur, bool) else v.lower() in ("1", "true", "yes"))
     cfg.validate()
     table = {"start_anywhere": lambda: exp_start_anywhere(a, cfg), "static": lambda: exp_static(a, cfg),
+             "lowrate": lambda: exp_lowrate(a, cfg),
              "rotation": lambda: exp_rotation(a, cfg)}
     names = [e for e in a.exp.split(",") if e]
     bad = [e for e in names if e not in table]
