@@ -578,3 +578,23 @@ def test_blind_interval_covers_the_lens_and_nothing_else(tmp_path):
     assert s["blind_frames"] == 2 and any("lens covered" in n for n in s["notes"])
     with pytest.raises(ConfigError, match="blind interval"):
         generate("room", tmp_path / "c", frames=4, width=32, height=24, mcap=False, blind=(0.3, 0.1))
+
+
+def test_slow_start_motion_starts_from_rest_with_consistent_derivatives():
+    """SlowStartMotion: zero speed and angular rate at t = 0; v, a the finite differences of p, v;
+    after the ramp the base motion, ramp/2 seconds late."""
+    from vings_core.sim import make_scene
+    from vings_core.sim.trajectory import SlowStartMotion
+    base = make_scene("room", seed=0).motion
+    m = SlowStartMotion(base, 1.5)
+    s0 = m.sample(0.0)
+    assert np.abs(s0.v).max() < 1e-12 and np.abs(s0.w).max() < 1e-12
+    t = np.linspace(0.05, 2.5, 40)
+    h = 1e-5
+    sp, sm, s = m.sample(t + h), m.sample(t - h), m.sample(t)
+    assert np.allclose((sp.p - sm.p) / (2 * h), s.v, atol=1e-5)
+    assert np.allclose((sp.v - sm.v) / (2 * h), s.a, atol=1e-3)
+    late = m.sample(np.array([2.0, 3.0]))
+    b = base.sample(np.array([1.25, 2.25]))
+    assert np.allclose(late.p, b.p) and np.allclose(late.v, b.v) and np.allclose(late.w, b.w)
+    assert m.duration == pytest.approx(base.duration + 0.75) if base.duration is not None else True

@@ -6,9 +6,10 @@ and ROS results agree.
 
 Two modes:
 
-* **concurrent** (default, as in the paper): the mapper trains in its own thread on a keyframe queue;
-  tracking waits for it only when ``run.max_mapper_lag`` keyframes are queued. Poses move between
-  the stages through the pose exchange (:mod:`vings_core.exchange`) between frames.
+* **concurrent** (default, as in the paper): the mapper trains in its own (niced) thread on a
+  :class:`~vings_core.keyframe_queue.KeyframeQueue`, bounded in memory and spilling to disk, so
+  tracking never waits for it (unless ``run.max_mapper_lag`` asks for it). Poses move between the
+  stages through the pose exchange (:mod:`vings_core.exchange`) between frames.
 * **sync** (``RunConfig.sync``): after each keyframe the mapper trains to completion before the next
   frame: deterministic, for tests and benchmarks.
 

@@ -35,7 +35,7 @@ from ..util import atomic_write_json
 from . import render_view
 from .imu import ImuData, ImuNoise, simulate_imu
 from .scene import SCENES, STREET_LENGTH_DEFAULT, STREET_MAX_LENGTH_M, Scene, default_camera, make_scene
-from .trajectory import MotionSample, TimeScaledMotion
+from .trajectory import MotionSample, SlowStartMotion, TimeScaledMotion
 
 log = logging.getLogger("vings.sim")
 
@@ -75,7 +75,7 @@ def _plan(scene_name: str, frames: Optional[int], fps: float, loop: bool,
 
 
 def build_scene(scene_name: str, seed: int = 0, dynamic: bool = False, loop: bool = False,
-                length_m: Optional[float] = None, fps: float = 20.0) -> Scene:
+                length_m: Optional[float] = None, fps: float = 20.0, slow_start_s: float = 0.0) -> Scene:
     """The scene :func:`generate` renders. For closed street routes the motion is time-scaled
     (by < 0.1 %) so its duration is a whole number of camera periods: the last frame is then
     exactly at the start pose."""
@@ -87,6 +87,8 @@ def build_scene(scene_name: str, seed: int = 0, dynamic: bool = False, loop: boo
         D = scene.motion.duration
         D2 = np.ceil(D * fps - 1e-9) / fps
         scene.motion = TimeScaledMotion(scene.motion, D / D2)
+    if slow_start_s > 0:        # from rest (a handheld camera picked up, a car pulling away)
+        scene.motion = SlowStartMotion(scene.motion, slow_start_s)
     return scene
 
 
@@ -170,7 +172,7 @@ def generate(scene_name: str, out_dir, frames: Optional[int] = None, width: int 
              height: int = 240, seed: int = 0, dynamic: bool = False, loop: bool = False,
              length_m: Optional[float] = None, mcap: bool = True, fps: float = 20.0,
              noise: bool = True, progress: bool = False,
-             blind: Optional[tuple[float, float]] = None) -> Path:
+             blind: Optional[tuple[float, float]] = None, slow_start_s: float = 0.0) -> Path:
     """Render scene ``scene_name`` and write it as an EuRoC/ASL folder at ``out_dir`` (and, if
     ``mcap``, ``<out_dir>/<scene>.mcap`` via :func:`vings_core.io.write_mcap`). Returns ``out_dir``.
 
@@ -179,8 +181,12 @@ def generate(scene_name: str, out_dir, frames: Optional[int] = None, width: int 
     ``noise=False`` writes the exact IMU (no noise, zero biases). ``seed`` fixes scene, motion and
     noise. ``blind``: ``(start, end)`` seconds after the first frame during which the lens is
     covered: those images are black with sensor noise (depth, masks, ground truth and IMU as
-    usual). The summary (see :func:`summarize`) is saved as ``<out_dir>/sim.json``.
+    usual). ``slow_start_s``: the motion starts from rest and reaches its own speed after that
+    many seconds (:class:`~vings_core.sim.trajectory.SlowStartMotion`; closed loops do not close
+    then). The summary (see :func:`summarize`) is saved as ``<out_dir>/sim.json``.
     """
+    if not (np.isfinite(slow_start_s) and slow_start_s >= 0):
+        raise ConfigError(f"slow start must be >= 0 s, got {slow_start_s}")
     if blind is not None:
         b0, b1 = (float(v) for v in blind)
         if not (np.isfinite(b0) and np.isfinite(b1) and 0 <= b0 < b1):
@@ -190,7 +196,8 @@ def generate(scene_name: str, out_dir, frames: Optional[int] = None, width: int 
     frames_req, length_m = _plan(scene_name, frames, fps, loop, length_m)
     camera = default_camera(int(width), int(height))
     _check_out_dir(out)
-    scene = build_scene(scene_name, seed=seed, dynamic=dynamic, loop=loop, length_m=length_m, fps=fps)
+    scene = build_scene(scene_name, seed=seed, dynamic=dynamic, loop=loop, length_m=length_m, fps=fps,
+                        slow_start_s=slow_start_s)
 
     notes: list[str] = []
     n_frames = _frame_count(scene, frames_req, fps, loop, notes)

@@ -478,6 +478,40 @@ class TimeScaledMotion(Motion):
         return MotionSample(t, s.p, s.v * k, s.a * k * k, s.R, s.w * k)
 
 
+class SlowStartMotion(Motion):
+    """``base`` started from rest: over the first ``ramp_s`` seconds its clock runs at the rate
+    ``g'(t / ramp_s)`` (a quintic smooth step from 0 to 1), so speed, acceleration and angular
+    rate grow smoothly from zero (zero at ``t = 0``) to ``base``'s own at ``ramp_s``, which then plays
+    on ``ramp_s / 2`` seconds behind. Derivatives by the chain rule: ``v = v_b tau'``,
+    ``a = a_b tau'^2 + v_b tau''``, ``w = w_b tau'``."""
+
+    def __init__(self, base: Motion, ramp_s: float):
+        if not (np.isfinite(ramp_s) and ramp_s > 0):
+            raise ValueError(f"ramp_s must be > 0 s, got {ramp_s}")
+        self.base = base
+        self.ramp_s = float(ramp_s)
+        self.duration = None if base.duration is None else base.duration + 0.5 * self.ramp_s
+        self.total_length = getattr(base, "total_length", None)
+
+    def warp(self, t) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``tau(t)``, ``tau'(t)``, ``tau''(t)`` (base time and its derivatives)."""
+        t = np.atleast_1d(np.asarray(t, np.float64))
+        T = self.ramp_s
+        u = np.clip(t / T, 0.0, 1.0)
+        ramp = t < T
+        tau = np.where(ramp, T * (2.5 * u ** 4 - 3 * u ** 5 + u ** 6), t - 0.5 * T)
+        d1 = np.where(ramp, 10 * u ** 3 - 15 * u ** 4 + 6 * u ** 5, 1.0)
+        d2 = np.where(ramp, (30 * u ** 2 - 60 * u ** 3 + 30 * u ** 4) / T, 0.0)
+        return tau, d1, d2
+
+    def sample(self, t) -> MotionSample:
+        t = np.atleast_1d(np.asarray(t, np.float64))
+        tau, d1, d2 = self.warp(t)
+        s = self.base.sample(tau)
+        return MotionSample(t, s.p, s.v * d1[:, None], s.a * (d1 ** 2)[:, None] + s.v * d2[:, None], s.R,
+                            s.w * d1[:, None])
+
+
 def _time_at_length(m: DriveMotion, length: float) -> float:
     lo, hi = 0.0, m.duration
     for _ in range(200):

@@ -42,6 +42,8 @@ def register(subparsers) -> None:
     p.add_argument("--seed", type=int_at_least(0), default=0, help="seed of scene, motion and IMU noise (>= 0)")
     p.add_argument("--no-noise", action="store_true", help="exact IMU: no noise, zero biases")
     p.add_argument("--no-mcap", action="store_true", help="skip the ROS 2 MCAP")
+    p.add_argument("--slow-start", type=float, default=0.0, metavar="S",
+                   help="start from rest and reach the scene's own speed after S seconds")
     p.add_argument("--blind", type=_interval, default=None, metavar="T0:T1",
                    help="lens covered from T0 to T1 seconds after the first frame (black images)")
     p.add_argument("--progress", action="store_true", help="show a progress bar")
@@ -54,6 +56,6 @@ def run(args) -> int:
     out = generate(args.scene, args.out, frames=args.frames, width=args.width, height=args.height,
                    seed=args.seed, dynamic=args.dynamic, loop=args.loop, length_m=args.length_m,
                    mcap=not args.no_mcap, fps=args.fps, noise=not args.no_noise,
-                   progress=args.progress, blind=args.blind)
+                   progress=args.progress, blind=args.blind, slow_start_s=args.slow_start)
     print(json.dumps(load_summary(out), indent=2))
     return 0
