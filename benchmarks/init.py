@@ -13,6 +13,8 @@ Experiments (``--exp``, comma list):
   2 Hz) and street (300 frames at 20 Hz, 376x240): images to live odometry, images posed, ATE.
 * ``onset``: the synthetic room and street starting from rest (``vings sim --slow-start 2``):
   seconds from the onset of motion to live odometry, frames posed, ATE.
+* ``lost``: the synthetic room and street with the lens covered for 1 s (``--blind 3:4``):
+  segments, seconds from the lens clearing to live odometry in the new segment, frames posed.
 * ``static``: ``euroc_v101_micro`` (camera still) at 376x240: the front end must never initialise.
 * ``rotation``: the synthetic room turned in place about the camera centre (no translation):
   never initialise.
@@ -163,6 +165,45 @@ def exp_onset(a, cfg) -> dict:
     return out
 
 
+def exp_lost(a, cfg) -> dict:
+    """The synthetic room and street (160 frames, 376x240, 20 Hz) with the lens covered for 1 s
+    (``vings sim --blind 3:4``), visual only: map segments, seconds from the lens clearing to the
+    first live pose of the new segment, share of the seeing frames posed in some segment."""
+    from vings_core.frontend import Frontend
+    from vings_core.io import SourceOptions, open_source
+    from vings_core.sim import generate
+    from vings_core.types import TrackState
+    work = Path(os.environ.get("TMPDIR", "/tmp")) / "vings_bench_init"
+    out = {}
+    for name in ("room", "street"):
+        d = work / f"{name}_blind160"
+        if not (d / "sim.json").exists():
+            generate(name, d, frames=160, width=376, height=240, mcap=False, blind=(3.0, 4.0))
+        src = open_source(d, SourceOptions(width=376, height=240))
+        fr = list(src.frames())
+        t0 = fr[0].stamp_ns
+        blind = {f.stamp_ns for f in fr if 3.0 <= (f.stamp_ns - t0) / 1e9 < 4.0}
+        clear = min(f.stamp_ns for f in fr if (f.stamp_ns - t0) / 1e9 >= 4.0)
+        fe = Frontend(cfg, src.calibration.camera)
+        live_after = None
+        for f in fr:
+            ests = fe.process(f)
+            fe.pop_keyframes()
+            own = [e for e in ests if e.stamp_ns == f.stamp_ns]
+            if (live_after is None and f.stamp_ns >= clear and own and own[-1].state == TrackState.TRACKING
+                    and fe.status()["segment"] > 0):
+                live_after = (f.stamp_ns - clear) / 1e9
+        fe.finish()
+        states = fe.frame_states()
+        seeing = [s for s in states if s not in blind]
+        posed = sum(1 for s in seeing if states[s] == TrackState.TRACKING)
+        out[name] = {"frames": len(fr), "blind_frames": len(blind), "segments": len(fe.segments()),
+                     "new_segment_live_after_clear_s": live_after,
+                     "seeing_frames_posed_frac": posed / max(len(seeing), 1)}
+        log(f"{name} covered lens: {out[name]}")
+    return out
+
+
 def exp_static(a, cfg) -> dict:
     p = SHARED / "euroc_v101_micro"
     if not p.is_dir():
@@ -192,7 +233,7 @@ def exp_rotation(a, cfg) -> dict:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--exp", default="start_anywhere,lowrate,onset,static,rotation")
+    ap.add_argument("--exp", default="start_anywhere,lowrate,onset,lost,static,rotation")
     ap.add_argument("--clip", type=int, default=30, help="frames per clip")
     ap.add_argument("--every", type=int, default=5, help="a clip starts at every n-th frame")
     ap.add_argument("--live-by", type=int, default=4, help="live odometry by this frame of the clip (1-based)")
@@ -210,6 +251,7 @@ def main(argv=None) -> int:
     cfg.validate()
     table = {"start_anywhere": lambda: exp_start_anywhere(a, cfg), "static": lambda: exp_static(a, cfg),
              "lowrate": lambda: exp_lowrate(a, cfg), "onset": lambda: exp_onset(a, cfg),
+             "lost": lambda: exp_lost(a, cfg),
              "rotation": lambda: exp_rotation(a, cfg)}
     names = [e for e in a.exp.split(",") if e]
     bad = [e for e in names if e not in table]
