@@ -315,7 +315,9 @@ def run_live(lis, domain, mcap, graph_params, work, log) -> dict:
             "latency_ms_p50": float(np.percentile(lat, 50)) if len(lat) else None,
             "latency_ms_p95": float(np.percentile(lat, 95)) if len(lat) else None,
             "frontend_frames_received": diag.get("frames_received"),
-            "frontend_frames_dropped": diag.get("frames_dropped"), "loadavg_at_start": load,
+            "frontend_frames_dropped": diag.get("frames_dropped"),
+            "frontend_frames_processed": diag.get("frames"), "frontend_keyframes": diag.get("keyframes"),
+            "loadavg_at_start": load,
             "odometry_not_ours": foreign}
 
 
