@@ -324,20 +324,26 @@ class Initialiser:
         ctx, cfg = self.ctx, self.ctx.cfg
         out: list[PoseEstimate] = []
         prior = None
+        T_start = kf0.T_cw          # each BA starts from the newer neighbour's pose
         for k in range(len(self.orphans) - 1, -1, -1):
             stamp, gray = self.orphans[k]
             pair = ctx.flow_pair(kf0.gray, gray, init01=prior, tex0=kf0.tex, both=False)
             gf = pair.fwd
-            if gf.conf_frac < cfg.min_confident_frac:
-                self.unposed_why = (f"{k + 1} frame(s) before frame {stamp} share too little of the "
+            mo = None
+            if gf.conf_frac >= cfg.min_confident_frac:
+                mo = BA.motion_only(kf0.T_cw[None], kf0.d[None], ctx.rays, torch.from_numpy(gf.target)[None],
+                                    torch.from_numpy(gf.weight)[None] * ctx.info_scale, ctx.K, T_start,
+                                    iters=cfg.track_iters, loss=cfg.robust_loss, delta=cfg.robust_delta_px)
+            # the tracking checks: enough confident flow, a finite pose that the flow agrees with
+            if mo is None or not (bool(torch.isfinite(mo.T_cw).all()) and mo.rms_px <= cfg.max_track_rms_px
+                                  and mo.inlier_frac >= 0.3):
+                self.unposed_why = (f"{k + 1} frame(s) up to frame {stamp} share too little of the "
                                     f"image with the first keyframe {kf0.stamp} (mean confidence "
                                     f"{gf.conf_frac:.2f}) to be posed")
                 ctx.events.append(f"back-fill: {self.unposed_why}")
                 break
             prior = pair.f01
-            mo = BA.motion_only(kf0.T_cw[None], kf0.d[None], ctx.rays, torch.from_numpy(gf.target)[None],
-                                torch.from_numpy(gf.weight)[None] * ctx.info_scale, ctx.K, kf0.T_cw,
-                                iters=cfg.track_iters, loss=cfg.robust_loss, delta=cfg.robust_delta_px)
+            T_start = mo.T_cw
             out.append(self.buffer.record(stamp, kf0.stamp, mo.T_cw.numpy(), TrackState.TRACKING))
         if out:
             ctx.events.append(f"back-filled {len(out)} frame(s) before the reference frame {kf0.stamp}")
