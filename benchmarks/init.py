@@ -42,16 +42,12 @@ def log(*a) -> None:
     print("[bench init]", *a, file=sys.stderr, flush=True)
 
 
-def _frontend(cfg, camera):
-    from vings_core.frontend import Frontend
-    return Frontend(cfg, camera)
-
-
 def run_clip(frames, camera, cfg, gt) -> dict:
     """A fresh front end over ``frames``; live and final states, ATE against ``gt`` (or None)."""
     from vings_core.eval.traj import associate, ate
+    from vings_core.frontend import Frontend
     from vings_core.types import TrackState
-    fe = _frontend(cfg, camera)
+    fe = Frontend(cfg, camera)
     live = None
     t0 = time.perf_counter()
     for k, f in enumerate(frames):
@@ -243,12 +239,9 @@ def main(argv=None) -> int:
     a = ap.parse_args(argv)
     from vings_core.config import load_section
     from vings_core.frontend import FrontendConfig
-    cfg = load_section(FrontendConfig, "frontend", a.params)
-    for kv in a.set:
-        k, v = kv.split("=", 1)
-        cur = getattr(cfg, k)
-        setattr(cfg, k, type(cur)(v) if not isinstance(cur, bool) else v.lower() in ("1", "true", "yes"))
-    cfg.validate()
+    import yaml
+    overrides = {k: yaml.safe_load(v) for k, v in (s.split("=", 1) for s in a.set)}
+    cfg = load_section(FrontendConfig, "frontend", a.params, overrides)
     table = {"start_anywhere": lambda: exp_start_anywhere(a, cfg), "static": lambda: exp_static(a, cfg),
              "lowrate": lambda: exp_lowrate(a, cfg), "onset": lambda: exp_onset(a, cfg),
              "lost": lambda: exp_lost(a, cfg),

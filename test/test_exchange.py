@@ -160,6 +160,8 @@ def test_crossing_rotations_end_in_agreement():
     keeper.receive(b_f)
     _flush(keeper, followers, [], {"mapper": [], "fixer": []})
     _assert_agree(owners)
+    # both writers' increments were taken, none refused (the graph's policies accept them)
+    assert keeper.stats["applied"] == len(C) + len(fx.poses) and keeper.stats["rejected"] == 0
 
 
 def test_refused_increment_is_undone_by_its_writer():

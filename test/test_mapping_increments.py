@@ -151,6 +151,7 @@ def test_a_pending_scale_survives_a_checkpoint_and_a_change_that_moves_nothing(t
     owed = m.all_gaussians()
     m.save_checkpoint(tmp_path / "c.npz")
     m2 = Mapper.load_checkpoint(tmp_path / "c.npz")
+    assert m2.state.depth_scale == m.state.depth_scale == {1_000: 1.3}     # history keyframe 1 owes its scale
     _close(owed, m2.all_gaussians(), 0.0)
     # a pose change that moves no Gaussians keeps what the passive ones are owed
     for mm in (m, m2):

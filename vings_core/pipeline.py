@@ -549,20 +549,23 @@ class SlamRunner:
         return self.frontend.trajectory(states=(TrackState.TRACKING,),
                                         segments=None if segment is None else {segment})
 
-    def _segment_records(self, gt: Optional[Trajectory]) -> list[dict]:
+    def _segment_records(self, gt: Optional[Trajectory]) -> tuple[list[dict], dict[int, Trajectory]]:
         """``segments.json`` entries (the front end's segments, whether each is in
-        ``trajectory.tum``, its ATE Sim(3) against ``gt`` when there are 3 frames or more)."""
+        ``trajectory.tum``, its ATE Sim(3) against ``gt`` when there are 3 frames or more) and each
+        segment's trajectory by index."""
         main = self.main_segment()
-        out = []
+        out, trajs = [], {}
         for d in self.frontend.segments():
-            rec = dict(d, joined_to=None, in_trajectory=d["index"] == main, ate_sim3_m=None)
+            k = d["index"]
+            trajs[k] = self.trajectory(k)
+            rec = dict(d, joined_to=None, in_trajectory=k == main, ate_sim3_m=None)
             if gt is not None and d["frames"] >= 3:
                 try:
-                    rec["ate_sim3_m"] = evaluate_trajectory(self.trajectory(d["index"]), gt).get("ate_sim3_m")
+                    rec["ate_sim3_m"] = evaluate_trajectory(trajs[k], gt).get("ate_sim3_m")
                 except InputError as e:
-                    log.warning("segment %d: trajectory evaluation skipped: %s", d["index"], e)
+                    log.warning("segment %d: trajectory evaluation skipped: %s", k, e)
             out.append(rec)
-        return out
+        return out, trajs
 
     def keyframe_trajectory(self) -> Trajectory:
         return Trajectory.from_poses(self.mapper.keyframe_poses())
@@ -611,18 +614,20 @@ class SlamRunner:
                 m.update({k: ev.get(k) for k in ("ate_sim3_m", "ate_se3_m", "sim3_scale", "rpe")})
             except InputError as e:
                 log.warning("trajectory evaluation skipped: %s", e)
-        segments = None
+        segments, seg_trajs = None, None
         if self.frontend is not None:
-            segments = self._segment_records(gt)
+            segments, seg_trajs = self._segment_records(gt)
             m.update(segments=len(segments),
                      ate_segments_m=[d["ate_sim3_m"] for d in segments] if gt is not None else None)
             if len(segments) > 1:
+                main = next(d["index"] for d in segments if d["in_trajectory"])
                 log.warning("tracking was lost: %d map segments; trajectory.tum holds segment %s "
                             "(%d frames), trajectory_segments/ each one in its own frame",
-                            len(segments), self.main_segment(), len(traj))
+                            len(segments), main, len(traj))
         images, renders = self._image_metrics(kf_traj, traj)
         m.update(images)
-        return {"traj": traj, "kf_traj": kf_traj, "metrics": m, "renders": renders, "segments": segments}
+        return {"traj": traj, "kf_traj": kf_traj, "metrics": m, "renders": renders, "segments": segments,
+                "segment_trajs": seg_trajs}
 
     def _write_final(self, final: dict, t0: float) -> dict:
         """Replace the previous run's files by this run's, ``metrics.json`` last. Everything is
@@ -634,8 +639,7 @@ class SlamRunner:
             out.write_trajectory(final["traj"], staged=True)
             out.write_keyframes(final["kf_traj"], staged=True)
             if final["segments"] is not None:
-                out.write_segments(final["segments"], {d["index"]: self.trajectory(d["index"])
-                                                       for d in final["segments"]}, staged=True)
+                out.write_segments(final["segments"], final["segment_trajs"], staged=True)
             self.mapper.save_ply(out.staging_path(out.map_path))
             self.mapper.save_checkpoint(out.staging_path(out.checkpoint_path))
             for name, rgb in final["renders"].items():

@@ -5,6 +5,7 @@ import json
 import logging
 import os
 import tempfile
+import threading
 import zipfile
 from glob import escape as glob_escape
 from pathlib import Path
@@ -171,7 +172,6 @@ def nice_current_thread(increment: int) -> bool:
     if increment <= 0:
         return True
     try:
-        import threading
         tid = threading.get_native_id()
         cur = os.getpriority(os.PRIO_PROCESS, tid)
         os.setpriority(os.PRIO_PROCESS, tid, min(19, cur + increment))

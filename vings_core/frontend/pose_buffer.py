@@ -129,7 +129,8 @@ class PoseBuffer:
 
     def segments(self) -> list[dict]:
         """Per map segment with tracked frames, in order: ``index``, ``first_stamp_ns``,
-        ``last_stamp_ns``, ``frames`` (tracked), ``keyframes``."""
+        ``last_stamp_ns``, ``frames`` (tracked), ``keyframes``. (Frames are processed in stamp
+        order, so the first and last seen are the first and last stamps.)"""
         out: dict[int, dict] = {}
         for s in self._order:
             r = self._records[s]
@@ -137,8 +138,7 @@ class PoseBuffer:
                 continue
             d = out.setdefault(r.segment, {"index": r.segment, "first_stamp_ns": s, "last_stamp_ns": s,
                                            "frames": 0, "keyframes": 0})
-            d["first_stamp_ns"] = min(d["first_stamp_ns"], s)
-            d["last_stamp_ns"] = max(d["last_stamp_ns"], s)
+            d["last_stamp_ns"] = s
             d["frames"] += 1
             d["keyframes"] += int(r.is_keyframe)
         return [out[k] for k in sorted(out)]

@@ -36,6 +36,13 @@ def compact_keyframe(kf: Keyframe) -> dict:
             "valid": kf.valid.clone(), "index": int(kf.index)}
 
 
+def scale_keyframe_depth(kf: Keyframe, k: float) -> None:
+    """In place: ``kf``'s depth map follows a similarity of scale ``k`` (depth times ``k``,
+    inverse-depth variance over ``k^2``); new tensors, so caches keyed on the old ones rebuild."""
+    kf.depth = kf.depth * k
+    kf.inv_depth_var = kf.inv_depth_var / (k * k)
+
+
 def expand_keyframe(rec: dict, stamp: int, T_wc: np.ndarray, camera: CameraModel) -> Keyframe:
     """The :class:`Keyframe` of a history record at camera-to-world pose ``T_wc``."""
     return Keyframe(stamp_ns=int(stamp), image=rec["image"].to(torch.float32) / 255.0,

@@ -36,7 +36,7 @@ from . import checkpoint as ckpt
 from .config import MapperConfig, RefineMode
 from .gaussians import GaussianMap, sh_dc_to_rgb
 from .growth import check_keyframe, densify
-from .history import compact_keyframe
+from .history import compact_keyframe, scale_keyframe_depth
 from .refine import PoseRefiner
 from .score_manager import ScoreManager
 from .state import MapState
@@ -356,8 +356,7 @@ class Mapper:
         for kf in st.window:
             k = scales.get(kf.stamp_ns)
             if k is not None:
-                kf.depth = kf.depth * k
-                kf.inv_depth_var = kf.inv_depth_var / (k * k)
+                scale_keyframe_depth(kf, k)
         for s, k in scales.items():
             if s in st.history:
                 st.depth_scale[s] = st.depth_scale.get(s, 1.0) * k

@@ -17,7 +17,7 @@ import torch
 from ..geometry import pose_inverse
 from ..types import Keyframe
 from .gaussians import PARAM_FIELDS, GaussianMap
-from .history import expand_keyframe
+from .history import expand_keyframe, scale_keyframe_depth
 from .init import empty_mask, usable_depth_mask
 from .losses import (accumulation_loss, depth_loss, depth_weight, l1_map, normal_loss, normals_from_depth,
                      rgb_loss, ssim_target_stats)
@@ -58,7 +58,7 @@ class Trainer:
         self.st = st
         self.scores = scores
         self.queue: list[int] = []                  # shuffled round of window stamps
-        self._aux: dict[tuple[int, int], dict] = {}     # cached per-keyframe (and level) masks / weights
+        self._aux: dict[int, dict[int, dict]] = {}      # stamp -> image width -> cached masks / weights
         self._coarse: dict[int, tuple[torch.Tensor, Keyframe]] = {}    # coarse copies of window keyframes
 
     def new_round(self) -> None:
@@ -67,8 +67,7 @@ class Trainer:
 
     def forget(self, stamp: int) -> None:
         """Drop what is cached for keyframe ``stamp`` (it left the window)."""
-        self._aux.pop((stamp, 0), None)
-        self._aux.pop((stamp, 1), None)
+        self._aux.pop(stamp, None)
         self._coarse.pop(stamp, None)
 
     def coarse_of(self, kf: Keyframe) -> Keyframe:
@@ -89,11 +88,10 @@ class Trainer:
         return st.window_keyframe(queue.pop(0))
 
     def keyframe_aux(self, kf: Keyframe) -> dict:
-        """Per-keyframe constant loss inputs, cached while the keyframe is in the window."""
+        """Per-keyframe constant loss inputs, cached while the keyframe is in the window (one set
+        per resolution: full and coarse)."""
         history = self.st.history
-        key = (kf.stamp_ns, int(kf.camera.width != self.st.camera.width)) if self.st.camera is not None \
-            else (kf.stamp_ns, 0)
-        a = self._aux.get(key) if kf.stamp_ns not in history else None
+        a = self._aux.get(kf.stamp_ns, {}).get(kf.camera.width) if kf.stamp_ns not in history else None
         if a is None or a["T"] is not kf.depth:
             cfg = self.st.cfg
             a = {"T": kf.depth, "usable": usable_depth_mask(kf, cfg.max_depth, cfg.max_depth_rel_std),
@@ -101,7 +99,7 @@ class Trainer:
                  "masked": empty_mask(kf, cfg.max_depth),
                  "ssim_stats": ssim_target_stats(kf.image) if cfg.lambda_ssim > 0 else None}
             if kf.stamp_ns not in history:
-                self._aux[key] = a
+                self._aux.setdefault(kf.stamp_ns, {})[kf.camera.width] = a
         return a
 
     def losses(self, out, kf: Keyframe, it_terms: dict, with_normal: bool = True, with_acc: bool = True,
@@ -162,8 +160,7 @@ class Trainer:
         kf = expand_keyframe(rec, s, st.poses[s], st.camera)
         k = st.depth_scale.get(s)
         if k is not None:           # similarity increments since it left the window
-            kf.depth = kf.depth * k
-            kf.inv_depth_var = kf.inv_depth_var / (k * k)
+            scale_keyframe_depth(kf, k)
         return kf
 
     def step(self) -> dict:
