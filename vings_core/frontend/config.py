@@ -11,6 +11,7 @@ from dataclasses import dataclass, fields
 ROBUST_LOSSES = ("huber", "cauchy", "none")
 FLOW_METHODS = ("dis", "torchscript")
 DIS_PRESETS = ("ultrafast", "fast", "medium")
+SEED_FEATURES = ("orb", "sift", "none")
 
 
 @dataclass
@@ -55,6 +56,13 @@ class FrontendConfig:
     min_confident_frac: float = 0.03    #: mean grid confidence below this -> tracking failure
     max_track_rms_px: float = 6.0       #: robust residual RMS above this -> tracking failure
     relocalize_frames: int = 5          #: failed frames tried against the window before re-initialising
+    seed_features: str = "orb"          #: sparse features seeding a failed dense flow: 'orb',
+                                        #: 'sift' or 'none' (see frontend/seed.py)
+    seed_max_features: int = 1000       #: features detected per image for seeding
+    seed_min_inliers: int = 20          #: RANSAC inliers (PnP / fundamental matrix) a seed needs
+    seed_ransac_px: float = 3.0         #: RANSAC threshold of the seeds (px, working resolution)
+    seed_above_rms_px: float = 2.0      #: a tracked frame whose residual RMS (px) is above this is
+                                        #: also tried seeded (the better fit is kept)
     # ---- initialisation
     init_min_parallax_lr_px: float = 1.0  #: median rotation-compensated flow (1/8 res) to initialise
     init_min_angle_deg: float = 1.0     #: a "wide" triangulation angle of an inlier (deg) ...
@@ -87,6 +95,10 @@ class FrontendConfig:
             raise ValueError(f"dis_preset must be one of {DIS_PRESETS}, got {self.dis_preset!r}")
         if self.chain_preset not in DIS_PRESETS:
             raise ValueError(f"chain_preset must be one of {DIS_PRESETS}, got {self.chain_preset!r}")
+        if self.seed_features not in SEED_FEATURES:
+            raise ValueError(f"seed_features must be one of {SEED_FEATURES}, got {self.seed_features!r}")
+        if self.seed_max_features < 8 or self.seed_min_inliers < 6:
+            raise ValueError("seed_max_features must be >= 8 and seed_min_inliers >= 6")
         if self.robust_loss not in ROBUST_LOSSES:
             raise ValueError(f"robust_loss must be one of {ROBUST_LOSSES}, got {self.robust_loss!r}")
         if not -1.0 <= self.ncc_min < 1.0:
@@ -107,7 +119,7 @@ class FrontendConfig:
             raise ValueError(f"emit_delay must be in [0, window), got {self.emit_delay}")
         for name in ("fb_sigma_px", "photo_sigma", "texture_tau", "block_spread_sigma_px",
                      "flow_sigma_px", "robust_delta_px", "upsample_sigma_spatial",
-                     "upsample_sigma_range", "max_track_rms_px", "init_ransac_px",
+                     "upsample_sigma_range", "max_track_rms_px", "init_ransac_px", "seed_ransac_px", "seed_above_rms_px",
                      "max_rel_depth_std", "max_depth_factor", "far_factor"):
             if getattr(self, name) <= 0:
                 raise ValueError(f"{name} must be positive")

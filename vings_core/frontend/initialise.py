@@ -21,8 +21,9 @@ from ..geometry import pose_inverse
 from ..types import Frame, PoseEstimate, TrackState
 from . import ba as BA
 from .context import DT, STRIDE, FlowChain, FlowPair, FrontendContext, StampedPose
-from .flow import GridFlow
+from .flow import GridFlow, dense_from_grid
 from .pose_buffer import PoseBuffer
+from .seed import SeedFeatures, interpolate_displacements, match_features
 from .window import KeyframeWindow, WindowKeyframe
 
 log = logging.getLogger("vings.frontend")
@@ -180,6 +181,11 @@ class Initialiser:
                 ctx.events.append(f"waiting: frame {stamp} {why}")
             ctx.reason = f"waiting: frame {stamp} {why}"
             return None
+        if gf.conf_frac < cfg.min_confident_frac:
+            # the motion may be beyond the dense flow's reach: seed it from sparse matches
+            seeded = self._seeded_pair(ref, gray, tex1)
+            if seeded is not None and seeded.fwd.conf_frac > gf.conf_frac:
+                pair, gf = seeded, seeded.fwd
         ref.chain = FlowChain(ref.stamp, pair.f01, gray)
         mean_lr = gf.mean_flow / STRIDE
         ctx.max_mean_flow_lr = max(ctx.max_mean_flow_lr, mean_lr)
@@ -200,6 +206,25 @@ class Initialiser:
         else:
             return self._try_initialise(frame, gray, pair)
         return None
+
+    def _seeded_pair(self, ref: Reference, gray: np.ndarray, tex1: np.ndarray) -> Optional[FlowPair]:
+        """Flow reference <-> frame refined around a prior interpolated from sparse feature matches
+        that fit a fundamental matrix (no depth exists yet); ``None`` when seeding is off or too
+        few matches agree."""
+        ctx, cfg = self.ctx, self.ctx.cfg
+        kind = SeedFeatures(cfg.seed_features)
+        if kind == SeedFeatures.NONE:
+            return None
+        t = time.perf_counter()
+        m = match_features(ref.gray, gray, kind, cfg.seed_max_features)
+        disp = interpolate_displacements(m, ctx.uv_np, ransac_px=cfg.seed_ransac_px,
+                                         min_inliers=cfg.seed_min_inliers)
+        ctx.stats["t_seed"] += time.perf_counter() - t
+        if disp is None:
+            return None
+        ctx.stats["seeded"] += 1
+        base = dense_from_grid(disp, ctx.h, ctx.w, ctx.H, ctx.W, STRIDE)
+        return ctx.flow_pair(ref.gray, gray, init01=base, tex0=ref.tex, tex1=tex1)
 
     def _try_initialise(self, frame: Frame, gray: np.ndarray, pair: FlowPair) -> Optional[Initialised]:
         rel = self._relative_pose(pair.fwd)

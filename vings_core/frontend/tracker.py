@@ -328,6 +328,13 @@ class Frontend:
         T_pred = self.motion.predict(stamp, self.window[-1].T_cw)
         track = self.motion.track_against(self.window[-1], gray, T_pred, tex)
         why = self.motion.check(track.fwd, track.motion)
+        if why is not None or not track.motion.rms_px <= self.cfg.seed_above_rms_px:
+            # failed or doubtful: the motion may be beyond the dense flow's reach; seed it from
+            # sparse matches and keep whichever passing result fits its flow better
+            seeded = self.motion.track_seeded(self.window[-1], gray, tex)
+            if (seeded is not None and self.motion.check(seeded.fwd, seeded.motion) is None
+                    and (why is not None or seeded.motion.rms_px < track.motion.rms_px)):
+                track, why = seeded, None
         if why is not None and self.state == TrackState.LOST:
             found = self._relocalise(gray, tex)
             if found is not None:
@@ -361,6 +368,9 @@ class Frontend:
         for other in reversed(self.window[:-1]):
             track = self.motion.track_against(other, gray, self.motion.last.T_cw.clone(), tex)
             if self.motion.check(track.fwd, track.motion) is None:
+                return track
+            track = self.motion.track_seeded(other, gray, tex)
+            if track is not None and self.motion.check(track.fwd, track.motion) is None:
                 return track
         return None
 

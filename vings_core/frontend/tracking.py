@@ -18,6 +18,7 @@ from . import ba as BA
 from .context import DT, STRIDE, FlowChain, FrontendContext, StampedPose
 from .flow import GridFlow, flow_around, grid_flow, invert_flow
 from .pose_buffer import PoseBuffer
+from .seed import SeedFeatures, match_features, pnp_seed
 from .projective import adjoint
 from .window import WindowKeyframe
 
@@ -115,11 +116,12 @@ class MotionTracker:
         return orthonormalize_pose(delta @ self.last.T_cw)
 
     def track_against(self, kf: WindowKeyframe, gray: np.ndarray, T_pred: torch.Tensor,
-                      tex: np.ndarray) -> Track:
-        """Flow ``kf`` -> frame (grey image ``gray``, grid texture ``tex``) around the chained or
-        the induced prior, then motion-only BA from ``T_pred``."""
+                      tex: np.ndarray, use_chain: bool = True) -> Track:
+        """Flow ``kf`` -> frame (grey image ``gray``, grid texture ``tex``) around the chained
+        (``use_chain`` and the chain starts at ``kf``) or the induced prior, then motion-only BA
+        from ``T_pred``."""
         ctx, cfg = self.ctx, self.ctx.cfg
-        if self.chain is not None and self.chain.stamp == kf.stamp:
+        if use_chain and self.chain is not None and self.chain.stamp == kf.stamp:
             init = ctx.chained_flow(self.chain, gray)
         else:
             init = ctx.induced_init(kf.T_cw, ctx.filled_depth(kf.d, kf.var), T_pred)
@@ -144,6 +146,31 @@ class MotionTracker:
                             d_var=None if kf.var is None else kf.var[None])
         ctx.stats["t_track"] += time.perf_counter() - t
         return Track(kf, gf, gb, mo)
+
+    def track_seeded(self, kf: WindowKeyframe, gray: np.ndarray, tex: np.ndarray) -> Optional[Track]:
+        """Tracking for motions the dense flow cannot follow: sparse feature matches ``kf`` -> frame,
+        PnP on the keyframe's depths (grid points whose relative inverse-depth std is below 0.3),
+        then the dense flow around the flow that pose induces and motion-only BA from it. ``None``
+        when seeding is off or no pose is found (the result still has to pass :meth:`check`)."""
+        ctx, cfg = self.ctx, self.ctx.cfg
+        kind = SeedFeatures(cfg.seed_features)
+        if kind == SeedFeatures.NONE:
+            return None
+        t = time.perf_counter()
+        m = match_features(kf.gray, gray, kind, cfg.seed_max_features)
+        d = kf.d.numpy().reshape(ctx.h, ctx.w)
+        if kf.var is None:
+            valid = d > 0
+        else:
+            std = np.sqrt(np.maximum(kf.var.numpy(), 0)).reshape(ctx.h, ctx.w)
+            valid = (d > 0) & (std < 0.3 * np.maximum(d, 1e-12))
+        seed = pnp_seed(m, d, valid, ctx.Kmat, kf.T_cw.numpy(), STRIDE, cfg.seed_min_inliers,
+                        cfg.seed_ransac_px)
+        ctx.stats["t_seed"] += time.perf_counter() - t
+        if seed is None:
+            return None
+        ctx.stats["seeded"] += 1
+        return self.track_against(kf, gray, torch.from_numpy(seed.T_cw), tex, use_chain=False)
 
     def complete_pair(self, track: Track, gray: np.ndarray, tex: np.ndarray) -> None:
         """Forward-backward checked grid flows keyframe <-> frame of the latest tracking attempt

@@ -46,7 +46,7 @@ SUMMARY_NAME = "sim.json"
 
 
 def _plan(scene_name: str, frames: Optional[int], fps: float, loop: bool,
-          length_m: Optional[float]) -> tuple[Optional[int], Optional[float]]:
+          length_m: Optional[float], speed_factor: float = 1.0) -> tuple[Optional[int], Optional[float]]:
     """Validate options; returns (frames or None = derive from the route, street length)."""
     if scene_name not in SCENES:
         raise ConfigError(f"unknown scene {scene_name!r}; expected one of {SCENES}")
@@ -65,9 +65,9 @@ def _plan(scene_name: str, frames: Optional[int], fps: float, loop: bool,
         return int(frames or ROOM_FRAMES_DEFAULT), None
     if length_m is None and frames is not None and not loop:
         # long enough for the requested frames at the fastest cruise speed
-        length_m = max(50.0, (int(frames) - 1) / fps * 12.0 + 10.0)
+        length_m = max(50.0, (int(frames) - 1) / fps * 12.0 * speed_factor + 10.0)
         if length_m > STREET_MAX_LENGTH_M:
-            most = int((STREET_MAX_LENGTH_M - 10.0) / 12.0 * fps) + 1
+            most = int((STREET_MAX_LENGTH_M - 10.0) / (12.0 * speed_factor) * fps) + 1
             raise ConfigError(f"--frames {frames} at {fps:g} fps needs a street of {length_m / 1000:.1f} km; "
                               f"the street scene is at most {STREET_MAX_LENGTH_M / 1000:g} km "
                               f"(at most {most} frames at {fps:g} fps)")
@@ -75,14 +75,18 @@ def _plan(scene_name: str, frames: Optional[int], fps: float, loop: bool,
 
 
 def build_scene(scene_name: str, seed: int = 0, dynamic: bool = False, loop: bool = False,
-                length_m: Optional[float] = None, fps: float = 20.0, slow_start_s: float = 0.0) -> Scene:
+                length_m: Optional[float] = None, fps: float = 20.0, slow_start_s: float = 0.0,
+                speed_factor: float = 1.0) -> Scene:
     """The scene :func:`generate` renders. For closed street routes the motion is time-scaled
     (by < 0.1 %) so its duration is a whole number of camera periods: the last frame is then
-    exactly at the start pose."""
+    exactly at the start pose. ``speed_factor``: the motion is played that many times faster
+    (speeds and turn rates x factor, accelerations x factor^2)."""
     kw = {"dynamic": dynamic}
     if scene_name == "street":
         kw.update(loop=loop, length_m=length_m)
     scene = make_scene(scene_name, seed=seed, **kw)
+    if speed_factor != 1.0:
+        scene.motion = TimeScaledMotion(scene.motion, speed_factor)
     if scene_name == "street" and loop:
         D = scene.motion.duration
         D2 = np.ceil(D * fps - 1e-9) / fps
@@ -172,7 +176,8 @@ def generate(scene_name: str, out_dir, frames: Optional[int] = None, width: int 
              height: int = 240, seed: int = 0, dynamic: bool = False, loop: bool = False,
              length_m: Optional[float] = None, mcap: bool = True, fps: float = 20.0,
              noise: bool = True, progress: bool = False,
-             blind: Optional[tuple[float, float]] = None, slow_start_s: float = 0.0) -> Path:
+             blind: Optional[tuple[float, float]] = None, slow_start_s: float = 0.0,
+             speed_factor: float = 1.0) -> Path:
     """Render scene ``scene_name`` and write it as an EuRoC/ASL folder at ``out_dir`` (and, if
     ``mcap``, ``<out_dir>/<scene>.mcap`` via :func:`vings_core.io.write_mcap`). Returns ``out_dir``.
 
@@ -183,21 +188,25 @@ def generate(scene_name: str, out_dir, frames: Optional[int] = None, width: int 
     covered: those images are black with sensor noise (depth, masks, ground truth and IMU as
     usual). ``slow_start_s``: the motion starts from rest and reaches its own speed after that
     many seconds (:class:`~vings_core.sim.trajectory.SlowStartMotion`; closed loops do not close
-    then). The summary (see :func:`summarize`) is saved as ``<out_dir>/sim.json``.
+    then). ``speed_factor``: the scene's motion played that many times faster (street at 2.5: cruise
+    21-29 m/s, highway speed; turn rates scale with the factor, accelerations with its square).
+    The summary (see :func:`summarize`) is saved as ``<out_dir>/sim.json``.
     """
     if not (np.isfinite(slow_start_s) and slow_start_s >= 0):
         raise ConfigError(f"slow start must be >= 0 s, got {slow_start_s}")
+    if not (np.isfinite(speed_factor) and 0.1 <= speed_factor <= 10.0):
+        raise ConfigError(f"speed factor must be in [0.1, 10], got {speed_factor}")
     if blind is not None:
         b0, b1 = (float(v) for v in blind)
         if not (np.isfinite(b0) and np.isfinite(b1) and 0 <= b0 < b1):
             raise ConfigError(f"blind interval must be 0 <= start < end seconds, got {blind}")
     wall0 = time.time()
     out = Path(out_dir).expanduser().absolute()
-    frames_req, length_m = _plan(scene_name, frames, fps, loop, length_m)
+    frames_req, length_m = _plan(scene_name, frames, fps, loop, length_m, speed_factor)
     camera = default_camera(int(width), int(height))
     _check_out_dir(out)
     scene = build_scene(scene_name, seed=seed, dynamic=dynamic, loop=loop, length_m=length_m, fps=fps,
-                        slow_start_s=slow_start_s)
+                        slow_start_s=slow_start_s, speed_factor=speed_factor)
 
     notes: list[str] = []
     n_frames = _frame_count(scene, frames_req, fps, loop, notes)

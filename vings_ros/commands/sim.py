@@ -44,6 +44,8 @@ def register(subparsers) -> None:
     p.add_argument("--no-mcap", action="store_true", help="skip the ROS 2 MCAP")
     p.add_argument("--slow-start", type=float, default=0.0, metavar="S",
                    help="start from rest and reach the scene's own speed after S seconds")
+    p.add_argument("--speed-factor", type=float, default=1.0, metavar="F",
+                   help="play the motion F times faster (street at 2.5: 21-29 m/s, highway speed)")
     p.add_argument("--blind", type=_interval, default=None, metavar="T0:T1",
                    help="lens covered from T0 to T1 seconds after the first frame (black images)")
     p.add_argument("--progress", action="store_true", help="show a progress bar")
@@ -56,6 +58,7 @@ def run(args) -> int:
     out = generate(args.scene, args.out, frames=args.frames, width=args.width, height=args.height,
                    seed=args.seed, dynamic=args.dynamic, loop=args.loop, length_m=args.length_m,
                    mcap=not args.no_mcap, fps=args.fps, noise=not args.no_noise,
-                   progress=args.progress, blind=args.blind, slow_start_s=args.slow_start)
+                   progress=args.progress, blind=args.blind, slow_start_s=args.slow_start,
+                   speed_factor=args.speed_factor)
     print(json.dumps(load_summary(out), indent=2))
     return 0
