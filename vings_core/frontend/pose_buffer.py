@@ -121,6 +121,14 @@ class PoseBuffer:
         poses = np.stack([self.pose(s) for s in st]) if st else np.zeros((0, 4, 4))
         return Trajectory(np.asarray(st, np.int64), poses)
 
+    def stamps_of_segment(self, segment: int) -> list[int]:
+        """Every processed frame of map segment ``segment``, in processing order."""
+        return [s for s in self._order if self._records[s].segment == segment]
+
+    def keyframes_of_segment(self, segment: int) -> list[int]:
+        """The keyframes of map segment ``segment``, in stamp order."""
+        return sorted(s for s in self._kf_T_cw if s in self._records and self._records[s].segment == segment)
+
     def keyframe_trajectory(self) -> Trajectory:
         """``T_wc`` of every keyframe ever made, in stamp order."""
         st = sorted(self._kf_T_cw)

@@ -21,14 +21,14 @@ from __future__ import annotations
 import logging
 import time
 from contextlib import contextmanager
-from typing import Optional
+from typing import TYPE_CHECKING, Optional
 
 import numpy as np
 import torch
 
 from ..errors import ConfigError, InputError
 from ..geometry import check_rigid_pose, check_sim3, sim3_apply_to_pose
-from ..types import CameraModel, Frame, Keyframe, PoseEstimate, Trajectory, TrackState
+from ..types import CameraModel, Frame, ImuSample, Keyframe, PoseEstimate, Trajectory, TrackState
 from . import ba as BA
 from .config import FrontendConfig
 from .context import STRIDE, FrontendContext
@@ -39,6 +39,9 @@ from .pose_buffer import PoseBuffer
 from .tracking import MotionTracker, Track, tangent_covariance
 from .window import KeyframeWindow, WindowKeyframe
 from ..profiling import profiled
+
+if TYPE_CHECKING:                       # pragma: no cover
+    from ..vio.fusion import ViFusion
 
 log = logging.getLogger("vings.frontend")
 #: every tracking state, in life-cycle order (the default filter of :meth:`Frontend.trajectory`)
@@ -74,9 +77,11 @@ class Frontend:
     """
 
     def __init__(self, config: Optional[FrontendConfig], camera: CameraModel,
-                 flow: Optional[FlowEstimator] = None):
+                 flow: Optional[FlowEstimator] = None, vio: Optional["ViFusion"] = None):
         """``flow``: the flow estimator to use (default: made from ``config``; a node builds it at
-        start so a bad ``flow_weights_path`` is reported before the camera is known)."""
+        start so a bad ``flow_weights_path`` is reported before the camera is known). ``vio``: the
+        visual-inertial fusion (:class:`~vings_core.vio.fusion.ViFusion`; ``None``: visual-only);
+        feed its IMU readings with :meth:`add_imu`, in time order with the frames."""
         self.cfg = config or FrontendConfig()
         self.cfg.validate()
         if camera.is_distorted:
@@ -90,6 +95,8 @@ class Frontend:
         self.win = KeyframeWindow(self.ctx, self.buffer)
         self.init = Initialiser(self.ctx, self.buffer, self.win)
         self.motion = MotionTracker(self.ctx)
+        self.vio = vio
+        self.win.export_incident = vio is not None
         self.state = TrackState.WAITING
         self._fails = 0                                # lost frames in a row
         self._last_stamp: Optional[int] = None
@@ -187,6 +194,17 @@ class Frontend:
         self.stats["t_total"] += time.perf_counter() - t0
         return out
 
+    def add_imu(self, sample: ImuSample) -> bool:
+        """One IMU reading (body frame, REP-145 units) for the fusion; ``False`` when refused
+        (non-finite, duplicate or out of order; counted) or when no fusion runs."""
+        return self.vio.add_imu(sample) if self.vio is not None else False
+
+    def take_similarities(self) -> dict[int, np.ndarray]:
+        """Keyframes the front end moved by a similarity of its own (the metric alignment of the
+        visual-inertial initialisation) since the last call: ``stamp -> C`` (4x4), for the pose
+        exchange so the followers scale their content with it."""
+        return self.vio.take_similarities() if self.vio is not None else {}
+
     def pop_keyframes(self) -> list[Keyframe]:
         """Keyframes emitted since the last call (a keyframe is emitted once ``emit_delay`` newer
         keyframes refined its depth, or at :meth:`finish`)."""
@@ -266,7 +284,8 @@ class Frontend:
 
     def status(self) -> dict:
         """State, reason and counters (plain data, for logs and diagnostics)."""
-        return {"state": self.state, "reason": self.reason, "segment": self.init.segment.index,
+        vi = self.vio.status() if self.vio is not None else {"vi_state": "visual-only"}
+        return {**vi, "state": self.state, "reason": self.reason, "segment": self.init.segment.index,
                 "keyframes_in_window": len(self.window), "edges": len(self.graph),
                 "motion_detected": self.motion_detected,
                 "max_mean_flow_lr_px": self.max_mean_flow_lr, **self.stats}
@@ -384,7 +403,12 @@ class Frontend:
             return None
         # the frame's pose is the BA pose of its keyframe
         self.motion.keyframe_added(new, gray)
-        return self.buffer.record(new.stamp, new.stamp, new.T_cw.numpy(), TrackState.TRACKING, True)
+        est = self.buffer.record(new.stamp, new.stamp, new.T_cw.numpy(), TrackState.TRACKING, True)
+        if self.vio is not None:
+            # the smoother (or the metric alignment) may move the window, this keyframe included
+            self.vio.after_keyframe(self)
+            est.T_wc = self.buffer.pose(new.stamp)
+        return est
 
     def _fail(self, stamp: int, why: str) -> PoseEstimate:
         self._fails += 1
@@ -409,6 +433,8 @@ class Frontend:
         self.buffer.segment = self.init.segment.index
         self.stats["segments"] += 1
         self.motion.reset()
+        if self.vio is not None:
+            self.vio.reset(f"new map segment {self.init.segment.index}")
         self._fails = 0
         self.state = TrackState.WAITING
         self.reason = (f"re-initialising a new map segment ({self.init.segment.index}) after "

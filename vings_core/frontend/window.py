@@ -73,6 +73,10 @@ class KeyframeWindow:
         self.emitted: list[Keyframe] = []
         self.keep_lowres_depth = False
         self.lowres_depth: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+        #: with ``export_incident``, the pose system of the edges incident to each keyframe that
+        #: leaves the window (over the window as it was), in ``leaving`` until taken
+        self.export_incident = False
+        self.leaving: list[tuple[int, BA.PoseSystem]] = []
         self._count = 0
 
     def new_index(self) -> int:
@@ -238,6 +242,10 @@ class KeyframeWindow:
         ``emit_delay`` newer ones."""
         cfg = self.ctx.cfg
         while len(self.keyframes) > cfg.window:
+            if self.export_incident:
+                sysm = self.incident_system(0)
+                if sysm is not None:
+                    self.leaving.append((self.keyframes[0].stamp, sysm))
             old = self.keyframes.pop(0)
             if not old.emitted:
                 self.emit(old)
@@ -246,6 +254,23 @@ class KeyframeWindow:
         for pos, kf in enumerate(self.keyframes):
             if not kf.emitted and n - 1 - pos >= cfg.emit_delay and pos < n - 1:
                 self.emit(kf)
+
+    def incident_system(self, pos: int) -> Optional[BA.PoseSystem]:
+        """Schur-reduced pose system (depths eliminated) of the edges that start or end at the
+        window keyframe at position ``pos``, over every window pose, linearised at the current
+        estimate; ``None`` without such edges. This is the visual information a keyframe takes with
+        it when it leaves the window (kept as a prior by a smoother)."""
+        cfg, ctx = self.ctx.cfg, self.ctx
+        stamps = [k.stamp for k in self.keyframes]
+        ii, jj, tg, wt = self.graph.tensors(stamps)
+        m = (ii == pos) | (jj == pos)
+        if not bool(m.any()):
+            return None
+        T = torch.stack([k.T_cw for k in self.keyframes])
+        d = torch.stack([k.d for k in self.keyframes])
+        ne = BA.assemble(T, d, ii[m], jj[m], ctx.rays, tg[m], wt[m] * ctx.info_scale, ctx.K,
+                         cfg.robust_loss, cfg.robust_delta_px)
+        return BA.reduced_pose_system(ne, T, stamps)
 
     def take_poses(self, kf_T_cw: dict[int, np.ndarray]) -> None:
         """New ``T_cw`` for keyframes (those in the window take them for the next BA); inverse

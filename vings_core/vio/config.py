@@ -1,0 +1,59 @@
+"""Visual-inertial fusion configuration: section ``vio`` of the params YAML."""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, fields
+
+
+@dataclass
+class ViConfig:
+    """Units: seconds, metres, radians; IMU noise in EuRoC/Kalibr continuous-time units."""
+
+    enabled: bool = True                  #: fuse the IMU when the source has one and a known T_bc
+    # ---- IMU noise: 0 = take the calibration's value (sensor.yaml / imu.yaml)
+    gyro_noise_density: float = 0.0       #: rad/s/sqrt(Hz)
+    gyro_random_walk: float = 0.0         #: rad/s^2/sqrt(Hz)
+    accel_noise_density: float = 0.0      #: m/s^2/sqrt(Hz)
+    accel_random_walk: float = 0.0        #: m/s^3/sqrt(Hz)
+    noise_inflation: float = 1.0          #: factor on the noise densities (unmodelled vibration)
+    td_s: float = 0.0                     #: camera-IMU time offset: t_imu = t_cam + td_s
+    max_imu_gap_s: float = 0.1            #: a longer gap between IMU readings within a keyframe
+                                          #: interval drops the fusion back to visual-only
+    # ---- initialisation (visual-inertial alignment)
+    init_min_keyframes: int = 6           #: keyframes of the segment the alignment needs
+    init_max_keyframes: int = 15          #: at most the newest this many
+    init_min_span_s: float = 1.0          #: their time span
+    init_min_excitation: float = 0.25     #: std of the mean specific force (m/s^2), VINS-Mono's test
+    align_g_tol: float = 0.1              #: relative error of |g| the unrefined alignment may have
+    align_max_residual: float = 0.1       #: RMS residual (m, m/s) above which it is refused
+    # ---- smoother
+    visual_weight: float = 1.0            #: factor on the dense BA's information
+    smoother_iters: int = 5               #: Levenberg-Marquardt iterations per keyframe
+    prior_rot_sigma: float = 1e-3         #: prior of the first state: rotation (rad)
+    prior_pos_sigma: float = 1e-3         #: ... position (m)
+    prior_vel_sigma: float = 0.1          #: ... velocity (m/s)
+    prior_acc_bias_sigma: float = 0.1     #: ... accelerometer bias (m/s^2)
+    prior_gyro_bias_sigma: float = 0.01   #: ... gyroscope bias (rad/s)
+
+    def validate(self) -> None:
+        for f in fields(self):
+            v = getattr(self, f.name)
+            if isinstance(v, float) and not math.isfinite(v):
+                raise ValueError(f"{f.name} must be a finite number, got {v}")
+        for name in ("gyro_noise_density", "gyro_random_walk", "accel_noise_density",
+                     "accel_random_walk", "init_min_span_s", "init_min_excitation"):
+            if getattr(self, name) < 0:
+                raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
+        for name in ("noise_inflation", "max_imu_gap_s", "align_g_tol", "align_max_residual",
+                     "visual_weight", "prior_rot_sigma", "prior_pos_sigma", "prior_vel_sigma",
+                     "prior_acc_bias_sigma", "prior_gyro_bias_sigma"):
+            if getattr(self, name) <= 0:
+                raise ValueError(f"{name} must be positive, got {getattr(self, name)}")
+        if self.init_min_keyframes < 3:
+            raise ValueError(f"init_min_keyframes must be >= 3, got {self.init_min_keyframes}")
+        if self.init_max_keyframes < self.init_min_keyframes:
+            raise ValueError("init_max_keyframes must be >= init_min_keyframes")
+        if self.smoother_iters < 1:
+            raise ValueError(f"smoother_iters must be >= 1, got {self.smoother_iters}")
+        if abs(self.td_s) > 1.0:
+            raise ValueError(f"td_s must be within +-1 s, got {self.td_s}")

@@ -1,0 +1,333 @@
+"""Visual-inertial fusion of the front end: IMU buffer, state machine, alignment to the metric
+gravity-aligned frame, and the window smoother alternating with the dense BA.
+
+Life cycle (:class:`ViState`)::
+
+    initialising --(alignment accepted)--> visual-inertial
+    visual-inertial --(new map segment / IMU gap)--> initialising
+    visual-only: fusion off, no IMU, or no known T_bc (never leaves it)
+
+While initialising, the front end runs visual-only (arbitrary scale). At each new keyframe, once the
+segment has ``init_min_keyframes`` keyframes spanning ``init_min_span_s`` and the IMU excitation
+passes (:func:`.align.excitation`), the keyframes are aligned (:func:`.align.align`); an accepted
+alignment moves every pose of the segment (and, through the pose exchange, the map) by the
+similarity ``C`` into the metric frame whose z axis is opposite to gravity (REP-103 ``map``).
+From then on, after every window BA the smoother (:class:`.smoother.WindowSmoother`) takes the
+BA's pose system as a factor, adds the new keyframe with its IMU factor, optimises, and writes the
+window's poses back for the next BA; keyframes leaving the window are marginalised with the visual
+information of their edges.
+"""
+from __future__ import annotations
+
+import logging
+from enum import Enum
+from typing import TYPE_CHECKING, Optional
+
+import numpy as np
+
+from ..errors import ConfigError
+from ..types import Calibration, ImuSample
+from .align import Alignment, align, excitation
+from .config import ViConfig
+from .preint import ImuArrays, ImuNoiseConfig, gtsam_params, gtsam_preintegrate, preintegrate
+from .smoother import NavEstimate, WindowSmoother
+
+if TYPE_CHECKING:                      # pragma: no cover
+    from ..frontend.tracker import Frontend
+
+log = logging.getLogger("vings.vio")
+
+
+class ViState(str, Enum):
+    """Visual-inertial state of the front end."""
+
+    VISUAL_ONLY = "visual-only"
+    INITIALISING = "initialising"
+    VISUAL_INERTIAL = "visual-inertial"
+
+
+class ImuBuffer:
+    """IMU readings in time order on the camera clock (``stamp - td``); refuses non-finite,
+    duplicate and out-of-order readings and counts them (``refused``)."""
+
+    def __init__(self, td_ns: int = 0, keep_s: float = 60.0):
+        self.td_ns = int(td_ns)
+        self.keep_ns = int(keep_s * 1e9)
+        self._t: list[int] = []
+        self._g: list[np.ndarray] = []
+        self._a: list[np.ndarray] = []
+        self.refused = {"out_of_order": 0, "duplicate": 0, "non_finite": 0}
+        self.count = 0
+        self._cache: Optional[ImuArrays] = None
+
+    def add(self, s: ImuSample) -> bool:
+        t = int(s.stamp_ns) - self.td_ns
+        g, a = np.asarray(s.gyro, np.float64), np.asarray(s.accel, np.float64)
+        if not (np.isfinite(g).all() and np.isfinite(a).all()):
+            self.refused["non_finite"] += 1
+            return False
+        if self._t and t <= self._t[-1]:
+            self.refused["duplicate" if t == self._t[-1] else "out_of_order"] += 1
+            return False
+        self._t.append(t)
+        self._g.append(g)
+        self._a.append(a)
+        self.count += 1
+        self._cache = None
+        if self._t[-1] - self._t[0] > 2 * self.keep_ns:          # bounded memory
+            cut = int(np.searchsorted(np.asarray(self._t), self._t[-1] - self.keep_ns))
+            del self._t[:cut], self._g[:cut], self._a[:cut]
+        return True
+
+    def arrays(self) -> ImuArrays:
+        if self._cache is None:
+            self._cache = ImuArrays(np.asarray(self._t, np.int64), np.asarray(self._g).reshape(-1, 3),
+                                    np.asarray(self._a).reshape(-1, 3))
+        return self._cache
+
+    def covers(self, t0_ns: int, t1_ns: int, max_gap_s: float) -> Optional[str]:
+        """Why ``[t0_ns, t1_ns]`` cannot be pre-integrated (``None`` when it can): no reading at or
+        before ``t0``, none at or after ``t1`` yet, or a gap longer than ``max_gap_s``."""
+        if not self._t:
+            return "no IMU readings yet"
+        st = self.arrays().stamps_ns
+        if st[0] > t0_ns:
+            return f"no IMU reading before {t0_ns} ns"
+        if st[-1] < t1_ns - int(max_gap_s * 1e9):
+            return f"IMU readings end at {int(st[-1])} ns, before {t1_ns} ns"
+        i0 = int(np.searchsorted(st, t0_ns, side="right")) - 1
+        i1 = int(np.searchsorted(st, t1_ns, side="left"))
+        seg = np.concatenate([[t0_ns], st[i0 + 1:i1], [min(t1_ns, int(st[-1])) if i1 >= len(st) else t1_ns]])
+        gap = float(np.diff(seg).max(initial=0)) * 1e-9
+        if gap > max_gap_s:
+            return f"IMU gap of {gap:.3f} s (> max_imu_gap_s {max_gap_s:g})"
+        return None
+
+
+class ViFusion:
+    """Visual-inertial fusion for one :class:`~vings_core.frontend.Frontend` (see module docs).
+
+    ``state``, ``reason`` (in words), ``events`` (state changes), ``initialised_at_ns`` (stamp of
+    the first accepted alignment), ``alignment`` (the last attempt), ``scale_applied`` (product of
+    the accepted alignments' scales)."""
+
+    def __init__(self, cfg: Optional[ViConfig], calib: Calibration):
+        self.cfg = cfg or ViConfig()
+        self.cfg.validate()
+        self.T_bc = np.asarray(calib.T_bc, np.float64)
+        c = self.cfg
+        infl = c.noise_inflation
+        self.noise = ImuNoiseConfig(
+            gyro_noise_density=infl * (c.gyro_noise_density or calib.gyro_noise_density),
+            gyro_random_walk=c.gyro_random_walk or calib.gyro_random_walk,
+            accel_noise_density=infl * (c.accel_noise_density or calib.accel_noise_density),
+            accel_random_walk=c.accel_random_walk or calib.accel_random_walk,
+            gravity=float(calib.gravity))
+        self.params = gtsam_params(self.noise)
+        self.imu = ImuBuffer(int(round(c.td_s * 1e9)))
+        self.smoother: Optional[WindowSmoother] = None
+        self.state = ViState.INITIALISING
+        self.reason = "initialising: waiting for keyframes and IMU excitation"
+        self.events: list[str] = []
+        self.initialised_at_ns: Optional[int] = None
+        self.alignment: Optional[Alignment] = None
+        self.alignments_refused = 0
+        self.scale_applied = 1.0
+        self.similarities: dict[int, np.ndarray] = {}    # for the pose exchange (taken by the owner)
+        self._tried_at: Optional[int] = None
+        self.t_fusion = 0.0
+
+    @staticmethod
+    def for_source(cfg: Optional[ViConfig], calib: Calibration, has_imu: bool) -> tuple[Optional["ViFusion"], str]:
+        """The fusion a source allows, and why not when ``None``: fusion off, no IMU, or no known
+        camera-IMU extrinsic (never a silent identity)."""
+        cfg = cfg or ViConfig()
+        if not cfg.enabled:
+            return None, "visual-only: IMU fusion switched off"
+        if not has_imu:
+            return None, "visual-only: the source has no IMU"
+        if not calib.T_bc_known:
+            return None, ("visual-only: the IMU has no known camera-IMU extrinsic T_bc (give a "
+                          "calibration file); not fused")
+        if calib.camera is None:
+            raise ConfigError("vio: no camera")
+        return ViFusion(cfg, calib), "initialising"
+
+    # --------------------------------------------------------------------------- inputs
+
+    def add_imu(self, s: ImuSample) -> bool:
+        return self.imu.add(s)
+
+    def reset(self, why: str) -> None:
+        """Back to initialising (a new map segment, an IMU gap): the smoother is dropped."""
+        if self.state == ViState.VISUAL_INERTIAL:
+            self.events.append(f"visual-inertial -> initialising: {why}")
+            log.warning("vio: %s", self.events[-1])
+        self.smoother = None
+        self.state = ViState.INITIALISING
+        self.reason = f"initialising: {why}"
+
+    # ------------------------------------------------------------------------- keyframes
+
+    def after_keyframe(self, fe: "Frontend") -> None:
+        """Called by the front end after each accepted window BA of a new keyframe."""
+        import time
+        t = time.perf_counter()
+        try:
+            if self.state == ViState.INITIALISING:
+                self._try_initialise(fe)
+            elif self.state == ViState.VISUAL_INERTIAL:
+                self._smooth(fe)
+        finally:
+            self.t_fusion += time.perf_counter() - t
+
+    def _segment_keyframes(self, fe: "Frontend") -> list[int]:
+        return fe.buffer.keyframes_of_segment(fe.init.segment.index)
+
+    def _preints(self, stamps: list[int]) -> Optional[list]:
+        for a, b in zip(stamps[:-1], stamps[1:]):
+            why = self.imu.covers(a, b, self.cfg.max_imu_gap_s)
+            if why is not None:
+                self.reason = f"initialising: {why}"
+                return None
+        arr = self.imu.arrays()
+        return [preintegrate(arr, a, b) for a, b in zip(stamps[:-1], stamps[1:])]
+
+    def _try_initialise(self, fe: "Frontend") -> None:
+        c = self.cfg
+        kfs = self._segment_keyframes(fe)[-c.init_max_keyframes:]
+        if len(kfs) < c.init_min_keyframes or (kfs[-1] - kfs[0]) * 1e-9 < c.init_min_span_s:
+            self.reason = (f"initialising: {len(kfs)} keyframe(s) over {(kfs[-1] - kfs[0]) * 1e-9 if kfs else 0:.2f} s "
+                           f"(need {c.init_min_keyframes} over {c.init_min_span_s:g} s)")
+            return
+        pres = self._preints(kfs)
+        if pres is None:
+            return
+        exc = excitation(pres)
+        if exc < c.init_min_excitation:
+            self.reason = (f"initialising: IMU excitation {exc:.3f} m/s^2 below "
+                           f"{c.init_min_excitation:g} (motion too smooth for scale and gravity)")
+            return
+        T_wc = [fe.pose(s) for s in kfs]
+        al = align(T_wc, self.T_bc, pres, gravity=self.noise.gravity, g_tol=c.align_g_tol,
+                   max_residual=c.align_max_residual)
+        self.alignment = al
+        if not al.ok:
+            self.alignments_refused += 1
+            self.reason = f"initialising: alignment refused ({al.why})"
+            if self._tried_at is None or kfs[-1] != self._tried_at:
+                self.events.append(f"alignment at keyframe {kfs[-1]} refused: {al.why}")
+            self._tried_at = kfs[-1]
+            return
+        self._apply_alignment(fe, al, kfs)
+
+    def _apply_alignment(self, fe: "Frontend", al: Alignment, kfs: list[int]) -> None:
+        C = al.C
+        seg = fe.init.segment.index
+        stamps = fe.buffer.stamps_of_segment(seg)
+        fe.apply_increments({s: C for s in stamps})
+        for s in fe.buffer.keyframes_of_segment(seg):
+            self.similarities[s] = C
+        fe.win.after_change(None)              # the window's pose system at the metric poses
+        self.scale_applied *= al.scale
+        R = C[:3, :3] / al.scale
+        vel = {s: R @ v for s, v in zip(kfs, al.velocities)}
+        self._start_smoother(fe, vel, al.bg)
+        self.state = ViState.VISUAL_INERTIAL
+        if self.initialised_at_ns is None:
+            self.initialised_at_ns = int(kfs[-1])
+        self.reason = (f"visual-inertial since keyframe {kfs[-1]}: scale {al.scale:.4g}, gyro bias "
+                       f"{np.round(al.bg, 4).tolist()} rad/s, alignment residual {al.residual_rms:.3g}")
+        self.events.append(f"initialised: {self.reason}")
+        log.info("vio: %s", self.events[-1])
+
+    def _body(self, fe: "Frontend", s: int) -> np.ndarray:
+        return fe.pose(s) @ np.linalg.inv(self.T_bc)
+
+    def _start_smoother(self, fe: "Frontend", vel: dict[int, np.ndarray], bg: np.ndarray) -> None:
+        c = self.cfg
+        win = [k.stamp for k in fe.window]
+        sm = WindowSmoother(self.params, self.T_bc)
+        first = win[0]
+        sm.start(NavEstimate(first, self._body(fe, first), vel.get(first, np.zeros(3)), np.zeros(3), bg),
+                 [c.prior_rot_sigma] * 3 + [c.prior_pos_sigma] * 3, c.prior_vel_sigma,
+                 c.prior_acc_bias_sigma, c.prior_gyro_bias_sigma)
+        self.smoother = sm
+        for s in win[1:]:
+            if not self._add_state(fe, s, vel.get(s)):
+                return
+        self._visual_and_optimise(fe)
+
+    def _add_state(self, fe: "Frontend", s: int, v: Optional[np.ndarray] = None) -> bool:
+        sm = self.smoother
+        prev = sm.window_stamps()[-1]
+        why = self.imu.covers(prev, s, self.cfg.max_imu_gap_s)
+        if why is not None:
+            self.reset(why)
+            return False
+        est = sm.latest()
+        import gtsam
+        pim = gtsam_preintegrate(self.imu.arrays(), prev, s, self.params,
+                                 gtsam.imuBias.ConstantBias(est.ba, est.bg))
+        k = sm.add(s, pim, self._body(fe, s))
+        if v is not None:
+            sm.values.update(gtsam.symbol("v", k), np.asarray(v, np.float64))
+        return True
+
+    def _visual_and_optimise(self, fe: "Frontend") -> None:
+        c, sm = self.cfg, self.smoother
+        ps = fe.pose_system
+        if ps is not None:
+            G, g = ps.to_gtsam_ordering()
+            T_wc = [np.linalg.inv(T) for T in ps.T_cw.numpy()]
+            sm.set_visual(G.numpy(), g.numpy(), list(ps.stamps_ns), T_wc, c.visual_weight)
+        sm.optimize(c.smoother_iters)
+        win = {k.stamp for k in fe.window}
+        fe.set_poses({s: sm.estimate(s).T_wb @ self.T_bc for s in sm.window_stamps() if s in win})
+        # keyframes that left the window take their visual information into the prior
+        leaving = dict(fe.win.leaving)
+        fe.win.leaving.clear()
+        while sm.window_stamps() and sm.window_stamps()[0] not in win:
+            old = sm.window_stamps()[0]
+            inc = leaving.get(old)
+            if inc is not None:
+                Gi, gi = inc.to_gtsam_ordering()
+                inc = (Gi.numpy() * c.visual_weight, gi.numpy() * c.visual_weight, list(inc.stamps_ns),
+                       [np.linalg.inv(T) for T in inc.T_cw.numpy()])
+            sm.marginalize_oldest(inc)
+
+    def _smooth(self, fe: "Frontend") -> None:
+        sm = self.smoother
+        known = set(sm.window_stamps())
+        for k in fe.window:
+            if k.stamp not in known and k.stamp > sm.window_stamps()[-1]:
+                if not self._add_state(fe, k.stamp):
+                    return
+        self._visual_and_optimise(fe)
+
+    # ---------------------------------------------------------------------------- output
+
+    def take_similarities(self) -> dict[int, np.ndarray]:
+        """Similarities the fusion applied to keyframes since the last call (for the pose exchange,
+        so the followers scale their content too)."""
+        out, self.similarities = self.similarities, {}
+        return out
+
+    def velocity(self) -> Optional[np.ndarray]:
+        """World velocity (m/s) of the newest keyframe state, when visual-inertial."""
+        if self.smoother is None or not self.smoother.states:
+            return None
+        return self.smoother.latest().v
+
+    def status(self) -> dict:
+        out = {"vi_state": self.state.value, "vi_reason": self.reason,
+               "vi_initialised_at_ns": self.initialised_at_ns,
+               "vi_scale_applied": self.scale_applied, "imu_samples": self.imu.count,
+               "imu_refused": dict(self.imu.refused), "alignments_refused": self.alignments_refused,
+               "td_s": self.cfg.td_s, "t_fusion_s": round(self.t_fusion, 3)}
+        if self.smoother is not None and self.smoother.states:
+            e = self.smoother.latest()
+            out.update(acc_bias=e.ba.tolist(), gyro_bias=e.bg.tolist(), velocity=e.v.tolist())
+        if self.alignment is not None and self.alignment.ok:
+            out["gravity_visual_world"] = self.alignment.g_w.tolist()
+        return out
