@@ -41,6 +41,7 @@ C = TypeVar("C")
 #: the library's stage sections of ``ros__parameters`` -> their config dataclass ("module:Class")
 LIBRARY_SECTIONS: dict[str, str] = {
     "frontend": "vings_core.frontend.config:FrontendConfig",
+    "vio": "vings_core.vio.config:ViConfig",
     "mapping": "vings_core.mapping.config:MapperConfig",
     "run": "vings_core.pipeline:RunConfig",
     "exchange": "vings_core.exchange:ExchangeConfig",

@@ -227,9 +227,14 @@ class SlamRunner:
     def __init__(self, source: Source, out_dir: str | Path, params_file: Optional[str] = None,
                  run_cfg: Optional[RunConfig] = None, progress: bool = True,
                  on_frame: Optional[Callable[[dict], None]] = None,
-                 stages: tuple[RunnerStage, ...] = (), exchange_cfg: Optional[ExchangeConfig] = None) -> None:
+                 stages: tuple[RunnerStage, ...] = (), exchange_cfg: Optional[ExchangeConfig] = None,
+                 vio_cfg: Optional["ViConfig"] = None) -> None:
+        """``vio_cfg``: the visual-inertial fusion's configuration (default: section ``vio`` of the
+        params file; ``enabled=False`` is ``--no-imu``)."""
         from .frontend import Frontend, FrontendConfig
         from .mapping import Mapper, MapperConfig
+        from .vio.config import ViConfig
+        from .vio.fusion import ViFusion
 
         self.source = source
         self.cfg = run_cfg or load_section(RunConfig, "run", params_file)
@@ -241,8 +246,17 @@ class SlamRunner:
             raise InputError(f"{source.path}: the recording has no camera images; SLAM needs an image stream")
         self.camera = cam
         self.mapper = Mapper(load_section(MapperConfig, "mapping", params_file))
+        self.vio, self.vio_why = None, "visual-only"
+        if not self.cfg.gt_poses:
+            vcfg = vio_cfg or load_section(ViConfig, "vio", params_file)
+            has_imu = bool(source.calibration.has_imu or source.imu_samples())
+            self.vio, self.vio_why = ViFusion.for_source(vcfg, source.calibration, has_imu)
+            if self.vio is None and has_imu and vcfg.enabled:
+                log.error("%s", self.vio_why)
+            else:
+                log.info("IMU fusion: %s", self.vio_why)
         self.frontend = None if self.cfg.gt_poses else Frontend(
-            load_section(FrontendConfig, "frontend", params_file), cam)
+            load_section(FrontendConfig, "frontend", params_file), cam, vio=self.vio)
         self.gt_kf = _GtKeyframer(source, self.cfg) if self.cfg.gt_poses else None
         # evaluation material kept while running; keyframe images: every stride-th keyframe, the
         # stride doubling whenever more than 2 x eval_keyframes are held (bounded memory on long
@@ -439,7 +453,7 @@ class SlamRunner:
         bar = _progress(n_total, self.progress)
         n_frames = 0
         try:
-            for frame in timed_iter(self.source.frames(), "io", "read frame"):
+            for frame in timed_iter(self._frames(), "io", "read frame"):
                 n_frames += 1
                 state = self._track_frame(frame, worker, frame.stamp_ns in keep_novel)
                 bar.update(1)
@@ -465,6 +479,18 @@ class SlamRunner:
         with timed("io", "write outputs"):
             return self._write_final(final, t0)
 
+    def _frames(self):
+        """The source's frames; with IMU fusion, the IMU readings up to each frame go to the front
+        end first (the merged stream, in time order)."""
+        if self.vio is None:
+            yield from self.source.frames()
+            return
+        for item in self.source.stream():
+            if isinstance(item, Frame):
+                yield item
+            else:
+                self.frontend.add_imu(item)
+
     def _track_frame(self, frame: Frame, worker: Optional[threading.Thread], keep_image: bool) -> TrackState:
         """One frame: take the writers' batches, track it (or take its ground-truth pose), send the
         keeper's batch, then its keyframes. Returns the frame's tracking state."""
@@ -480,6 +506,9 @@ class SlamRunner:
             ests = self.frontend.process(frame)
             kfs = self.frontend.pop_keyframes()
             state = ests[-1].state if ests else self.frontend.state
+            sims = self.frontend.take_similarities()
+            if sims:       # the metric alignment: the followers scale their content with it
+                self.keeper.own_similarity(sims)
         if keep_image:
             self._frame_images[frame.stamp_ns] = frame.rgb().copy()
         self._send_moves(worker, frame.stamp_ns)
@@ -599,6 +628,8 @@ class SlamRunner:
             m.update(frames_unposed=n_unposed, frames_unposed_reason=why)
             if n_unposed:
                 log.warning("%d of %d frames have no pose: %s", n_unposed, n_frames, why)
+        if self.frontend is not None:
+            m.update(self._vi_metrics())
         # with gt_poses the trajectory IS the ground truth: no ATE/RPE to report (null)
         gt = None
         if not self.cfg.gt_poses:
@@ -628,6 +659,17 @@ class SlamRunner:
         m.update(images)
         return {"traj": traj, "kf_traj": kf_traj, "metrics": m, "renders": renders, "segments": segments,
                 "segment_trajs": seg_trajs}
+
+    def _vi_metrics(self) -> dict:
+        """``vi_*``, ``scale_observable``, biases and the time offset for metrics.json."""
+        if self.vio is None:
+            return {"vi_state": "visual-only", "scale_observable": False}
+        st = self.vio.status()
+        t0 = int(self.source.frame_stamps()[0])
+        at = self.vio.initialised_at_ns
+        return {"vi_state": st["vi_state"], "scale_observable": at is not None,
+                "vi_initialised_at_s": None if at is None else (at - t0) * 1e-9,
+                "acc_bias": st.get("acc_bias"), "gyro_bias": st.get("gyro_bias"), "td_s": st["td_s"]}
 
     def _write_final(self, final: dict, t0: float) -> dict:
         """Replace the previous run's files by this run's, ``metrics.json`` last. Everything is

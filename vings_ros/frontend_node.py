@@ -32,7 +32,9 @@ from vings_core.io.calib_yaml import is_rectified_topic, load_calibration_yaml
 from vings_core.io.undistort import Undistorter
 from vings_core.exchange import ExchangeConfig, PoseKeeper
 from vings_core.exchange.config import KEEPER
-from vings_core.types import CameraModel, Frame, TrackState
+from vings_core.types import Calibration, CameraModel, Frame, TrackState
+from vings_core.vio.config import ViConfig
+from vings_core.vio.fusion import ViFusion
 
 from . import registry
 from .node_base import BatchInbox, Level, NodeStatus, StageNode
@@ -52,6 +54,9 @@ class FrontendNode(StageNode):
 
     def setup(self) -> None:
         self.fcfg: FrontendConfig = self.config("frontend")
+        self.vcfg: ViConfig = self.config("vio")
+        self.calib: Optional[Calibration] = None     # from frontend_node.calib_file (T_bc, IMU noise)
+        self.vio_why = "visual-only: no IMU message yet"
         self._exchange_setup()      # before a calibration file makes the front end (and its keeper)
         self.raw_camera: Optional[CameraModel] = None
         self.undist: Optional[Undistorter] = None
@@ -81,6 +86,7 @@ class FrontendNode(StageNode):
             calib = load_calibration_yaml(calib_file)
             if calib.camera is None:
                 raise InputError(f"{calib_file}: calibration has no camera")
+            self.calib = calib
             self._set_camera(calib.camera)
 
         sq = T.sensor_qos
@@ -132,22 +138,41 @@ class FrontendNode(StageNode):
                     f"one: restart the nodes for a new camera ({self.camera_changes} such message(s))")
 
     def _on_imu(self, msg: Imu) -> None:
-        # The IMU is fused in a later stage of the front end; samples are checked and counted.
+        # checked, counted, and given to the fusion when it runs (its buffer is thread-safe)
         try:
-            msg_to_imu_sample(msg, T.IMU_TOPIC)
+            sample = msg_to_imu_sample(msg, T.IMU_TOPIC)
         except InputError as e:
             self.bad_imu += 1
             if _report(self.bad_imu):
                 self.get_logger().warning(f"bad IMU message ({self.bad_imu} so far): {e}")
             return
         self.imu_count += 1
+        fe = self.frontend
+        if fe is not None and fe.vio is not None:
+            fe.add_imu(sample)
+        elif self.imu_count == 1 and self.vcfg.enabled:
+            self.get_logger().error(self._no_fusion_why())
+
+    def _no_fusion_why(self) -> str:
+        if not self.vcfg.enabled:
+            return "visual-only: IMU fusion switched off (vio.enabled false)"
+        return ("visual-only: IMU messages arrive but the camera-IMU extrinsic T_bc is unknown; give "
+                "frontend_node.calib_file (Kalibr/EuRoC YAML with T_BS / T_cam_imu) to fuse them")
+
+    def _make_fusion(self) -> Optional[ViFusion]:
+        """The fusion when the calibration file gives ``T_bc`` (there is no tf2 here)."""
+        if self.calib is None:
+            self.vio_why = self._no_fusion_why()
+            return None
+        vio, self.vio_why = ViFusion.for_source(self.vcfg, self.calib, True)
+        return vio
 
     def _set_camera(self, raw: CameraModel) -> None:
         w = self.settings.width or None
         h = self.settings.height or None
         self.undist = Undistorter(raw, w, h, undistort=True)
         self.raw_camera = raw
-        self.frontend = Frontend(self.fcfg, self.undist.camera, flow=self._flow)
+        self.frontend = Frontend(self.fcfg, self.undist.camera, flow=self._flow, vio=self._make_fusion())
         self.keeper = PoseKeeper(self.frontend, self.xcfg)
         cam = self.undist.camera
         self._camera_ready.set()
@@ -197,6 +222,9 @@ class FrontendNode(StageNode):
         self.bad_streak = 0
         self._exchange_receive()
         ests = self.frontend.process(frame)
+        sims = self.frontend.take_similarities()
+        if sims:       # the metric alignment: the mapper scales its Gaussians with it
+            self.keeper.own_similarity(sims)
         for est in ests:
             if est.state is TrackState.TRACKING:
                 # a back-filled pose (a frame that waited for initialisation) is published late,
@@ -253,12 +281,26 @@ class FrontendNode(StageNode):
                   "camera_changes": self.camera_changes,
                   "imu_samples": self.imu_count, "bad_imu": self.bad_imu,
                   "late_poses": self.late_poses,
+                  **self._vi_values(st),
                   **self._exchange_values()}
+        if self.imu_count and self.vcfg.enabled and (self.frontend is None or self.frontend.vio is None):
+            # an IMU that cannot be fused (no T_bc): never a silent identity
+            return NodeStatus(Level.ERROR, self._no_fusion_why(), values)
         if self.bad_streak >= BAD_STREAK_ERROR:
             # images arrive but none can be used (wrong size after a camera change, bad encoding)
             return NodeStatus(Level.ERROR, f"the last {self.bad_streak} images were skipped: "
                                            f"{self._last_skip}", values)
         return NodeStatus(Level(TRACKING_STATE_LEVEL[state]), st.get("reason") or state, values)
+
+    def _vi_values(self, st: dict) -> dict:
+        """The visual-inertial state for /diagnostics (plain values)."""
+        out = {"vi_state": st.get("vi_state", "visual-only"), "vi_reason": st.get("vi_reason", self.vio_why)}
+        for k in ("vi_scale_applied", "acc_bias", "gyro_bias", "velocity", "gravity_visual_world",
+                  "imu_refused", "alignments_refused", "td_s"):
+            if k in st:
+                v = st[k]
+                out[k] = str(v) if isinstance(v, (list, dict)) else v
+        return out
 
     # ----------------------------------------------------------------------- pose exchange
     # The front end keeps the poses (vings_core.exchange.PoseKeeper): the writers' batches come in on

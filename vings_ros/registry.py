@@ -46,7 +46,7 @@ class NodeSpec:
 
 NODES: tuple[NodeSpec, ...] = (
     NodeSpec("frontend_node", "vings_ros.frontend_node", "vings_ros.node_config:FrontendNodeConfig",
-             reads=("frontend", "exchange")),
+             reads=("frontend", "vio", "exchange")),
     NodeSpec("mapper_node", "vings_ros.mapper_node", "vings_ros.node_config:MapperNodeConfig",
              reads=("mapping",), stop_timeout_s=180.0),
     NodeSpec("recorder_node", "vings_ros.recorder", launch=Launch.ON_REQUEST),

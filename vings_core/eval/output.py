@@ -54,10 +54,13 @@ METRIC_KEYS = (
     "num_gaussians", "peak_rss_mb",
     "keyframes_light", "queue_peak_keyframes", "queue_spilled",
     "frames_unposed", "frames_unposed_reason", "segments", "ate_segments_m",
+    "vi_state", "vi_initialised_at_s", "scale_observable", "acc_bias", "gyro_bias", "td_s",
 )
 _INT_KEYS = {"frames", "frames_tracked", "keyframes", "num_gaussians", "keyframes_light",
              "queue_peak_keyframes", "queue_spilled", "frames_unposed", "segments"}
-_STR_KEYS = {"frames_unposed_reason"}
+_STR_KEYS = {"frames_unposed_reason", "vi_state"}
+_BOOL_KEYS = {"scale_observable"}
+_LIST_KEYS = {"ate_segments_m", "acc_bias", "gyro_bias"}
 #: Keys of :func:`vings_core.eval.traj.evaluate_trajectory`'s result that go into metrics.json.
 TRAJECTORY_METRIC_KEYS = ("ate_sim3_m", "ate_se3_m", "sim3_scale", "rpe")
 
@@ -94,8 +97,9 @@ def validate_metrics(metrics: dict) -> dict:
 
     Unknown keys raise ValueError (a programming error); missing keys become None; non-finite
     numbers (e.g. the PSNR of identical images) become None; ``rpe`` must be a dict or None,
-    ``frames_unposed_reason`` a string or None, ``ate_segments_m`` a list of numbers or nulls or
-    None; the other values numbers or None."""
+    ``frames_unposed_reason`` and ``vi_state`` strings or None, ``scale_observable`` a bool or None,
+    ``ate_segments_m``, ``acc_bias`` and ``gyro_bias`` lists of numbers or nulls or None; the other
+    values numbers or None."""
     unknown = [k for k in metrics if k not in METRIC_KEYS]
     if unknown:
         raise ValueError(f"unknown metrics key(s) {unknown}; allowed: {list(METRIC_KEYS)}")
@@ -105,10 +109,13 @@ def validate_metrics(metrics: dict) -> dict:
         if k == "rpe":
             if v is not None and not isinstance(v, dict):
                 raise ValueError(f"metrics 'rpe' must be a dict or None, got {type(v).__name__}")
-        elif k == "ate_segments_m":
+        elif k in _LIST_KEYS:
             if v is not None and not (isinstance(v, list) and all(
                     x is None or (isinstance(x, (int, float)) and not isinstance(x, bool)) for x in v)):
-                raise ValueError(f"metrics 'ate_segments_m' must be a list of numbers or nulls, got {v!r}")
+                raise ValueError(f"metrics {k!r} must be a list of numbers or nulls, got {v!r}")
+        elif k in _BOOL_KEYS:
+            if v is not None and not isinstance(v, bool):
+                raise ValueError(f"metrics {k!r} must be true, false or None, got {v!r}")
         elif k in _STR_KEYS:
             if v is not None and not isinstance(v, str):
                 raise ValueError(f"metrics {k!r} must be a string or None, got {v!r}")

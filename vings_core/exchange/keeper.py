@@ -82,6 +82,18 @@ class PoseKeeper:
             self.stats["last_q"], self.stats["last_q_limit"] = q, limit
         return ok
 
+    def own_similarity(self, increments: dict[int, np.ndarray]) -> None:
+        """The owner moved keyframes by similarities of its own (``{stamp: C}``, already applied to
+        its poses; e.g. the visual-inertial alignment into the metric frame): they are composed
+        into the pending increments like accepted ones, so the next batch carries their scale and
+        the followers scale their content, not only move it. Unpublished stamps are ignored (the
+        followers get those keyframes with their new pose)."""
+        for s, C in increments.items():
+            s = int(s)
+            if s in self.published:
+                C = np.asarray(C, np.float64)
+                self.accepted[s] = sim3_compose(C, self.accepted[s]) if s in self.accepted else C
+
     def outgoing(self, seq_hint: int = 0) -> Optional[IncrementBatch]:
         """The keeper's batch since the last call: per keyframe that moved, the increment from its
         published pose to its current pose; None when nothing moved and no writer's batch was

@@ -30,8 +30,10 @@ class Alignment:
     ``scale``: metric metres per visual unit; ``g_w``: gravity in the visual world (m/s^2);
     ``bg``: gyroscope bias (rad/s); ``velocities``: ``(n, 3)`` metric body velocities in the visual
     world's axes; ``residual_rms``: RMS of the linear system's residual (m and m/s);
-    ``C``: 4x4 similarity to the metric gravity-aligned frame (z up), ``x -> s R x`` on visual
-    world points."""
+    ``scale_std``: the scale's standard deviation relative to the scale, from the least-squares
+    covariance (residual variance times ``(A^T A)^-1``): large when the motion leaves the scale
+    unobservable (constant velocity); ``C``: 4x4 similarity to the metric gravity-aligned frame
+    (z up), ``x -> s R x`` on visual world points."""
 
     ok: bool
     why: str
@@ -40,6 +42,7 @@ class Alignment:
     bg: np.ndarray = field(default_factory=lambda: np.zeros(3))
     velocities: Optional[np.ndarray] = None
     residual_rms: float = float("nan")
+    scale_std: float = float("nan")
     C: Optional[np.ndarray] = None
 
 
@@ -123,12 +126,12 @@ def gravity_alignment(g_w: np.ndarray) -> np.ndarray:
 
 def align(T_wc: Sequence[np.ndarray], T_bc: np.ndarray, pres: Sequence[Preintegrated],
           gravity: float = 9.81, g_tol: float = 0.1, max_residual: float = 0.05,
-          refine_iters: int = 4) -> Alignment:
+          refine_iters: int = 4, max_scale_std: float = 0.02) -> Alignment:
     """Align ``n`` visual keyframe poses ``T_wc`` (consecutive, up to scale) with the ``n - 1``
     pre-integrations between them. Refused (``ok`` false) when the scale is not positive, the
-    unrefined gravity norm is off by more than ``g_tol`` (relative), or the residual RMS after
-    refinement exceeds ``max_residual`` (m, m/s). ``pres`` are re-used at the estimated gyro bias
-    to first order."""
+    unrefined gravity norm is off by more than ``g_tol`` (relative), the residual RMS after
+    refinement exceeds ``max_residual`` (m, m/s), or the scale's relative standard deviation
+    exceeds ``max_scale_std``. ``pres`` are re-used at the estimated gyro bias to first order."""
     n = len(T_wc)
     if n < 3 or len(pres) != n - 1:
         return Alignment(False, f"need >= 3 keyframes and one pre-integration per interval "
@@ -161,14 +164,24 @@ def align(T_wc: Sequence[np.ndarray], T_bc: np.ndarray, pres: Sequence[Preintegr
     A, b = _linear_system(T_wc, T_bc, fixed, g_fixed=g, B=_tangent_basis(g))
     x = np.linalg.lstsq(A, b, rcond=None)[0]
     s = float(x[-1])
-    res = float(np.sqrt(np.mean((A @ x - b) ** 2)))
+    r = A @ x - b
+    res = float(np.sqrt(np.mean(r ** 2)))
+    dof = max(A.shape[0] - A.shape[1], 1)
+    try:
+        cov_ss = float(np.linalg.inv(A.T @ A)[-1, -1])
+    except np.linalg.LinAlgError:
+        cov_ss = float("inf")
+    s_std = float(np.sqrt(max(r @ r / dof * cov_ss, 0.0))) / abs(s) if s != 0 else float("inf")
     vel = x[:3 * n].reshape(n, 3)
+    kw = dict(scale=s, g_w=g, bg=bg, velocities=vel, residual_rms=res, scale_std=s_std)
     if not s > 0:
-        return Alignment(False, f"refined scale {s:.4g} is not positive", scale=s, g_w=g, bg=bg)
+        return Alignment(False, f"refined scale {s:.4g} is not positive", **kw)
     if not res <= max_residual:
-        return Alignment(False, f"residual RMS {res:.3g} above {max_residual:g}", scale=s, g_w=g,
-                         bg=bg, velocities=vel, residual_rms=res)
+        return Alignment(False, f"residual RMS {res:.3g} above {max_residual:g}", **kw)
+    if not s_std <= max_scale_std:
+        return Alignment(False, f"scale not observable yet (relative std {s_std:.3f} > "
+                                f"{max_scale_std:g}: too little acceleration)", **kw)
     R = gravity_alignment(g)
     C = np.eye(4)
     C[:3, :3] = s * R
-    return Alignment(True, "aligned", s, g, bg, vel, res, C)
+    return Alignment(True, "aligned", C=C, **kw)

@@ -26,6 +26,7 @@ class ViConfig:
     init_min_excitation: float = 0.25     #: std of the mean specific force (m/s^2), VINS-Mono's test
     align_g_tol: float = 0.1              #: relative error of |g| the unrefined alignment may have
     align_max_residual: float = 0.1       #: RMS residual (m, m/s) above which it is refused
+    align_max_scale_std: float = 0.02     #: relative std of the scale above which it is refused
     # ---- smoother
     visual_weight: float = 1.0            #: factor on the dense BA's information
     smoother_iters: int = 5               #: Levenberg-Marquardt iterations per keyframe
@@ -44,7 +45,7 @@ class ViConfig:
                      "accel_random_walk", "init_min_span_s", "init_min_excitation"):
             if getattr(self, name) < 0:
                 raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
-        for name in ("noise_inflation", "max_imu_gap_s", "align_g_tol", "align_max_residual",
+        for name in ("noise_inflation", "max_imu_gap_s", "align_g_tol", "align_max_residual", "align_max_scale_std",
                      "visual_weight", "prior_rot_sigma", "prior_pos_sigma", "prior_vel_sigma",
                      "prior_acc_bias_sigma", "prior_gyro_bias_sigma"):
             if getattr(self, name) <= 0:

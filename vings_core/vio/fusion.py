@@ -20,6 +20,7 @@ information of their edges.
 from __future__ import annotations
 
 import logging
+import threading
 from enum import Enum
 from typing import TYPE_CHECKING, Optional
 
@@ -37,6 +38,9 @@ if TYPE_CHECKING:                      # pragma: no cover
 
 log = logging.getLogger("vings.vio")
 
+#: kinds of :meth:`ImuBuffer.covers` refusals
+BEFORE, NOT_YET, GAP = "no IMU before", "IMU not there yet", "IMU gap"
+
 
 class ViState(str, Enum):
     """Visual-inertial state of the front end."""
@@ -48,9 +52,11 @@ class ViState(str, Enum):
 
 class ImuBuffer:
     """IMU readings in time order on the camera clock (``stamp - td``); refuses non-finite,
-    duplicate and out-of-order readings and counts them (``refused``)."""
+    duplicate and out-of-order readings and counts them (``refused``). Thread-safe: a node adds
+    readings from its IMU callback while the front end reads them."""
 
     def __init__(self, td_ns: int = 0, keep_s: float = 60.0):
+        self._lock = threading.Lock()
         self.td_ns = int(td_ns)
         self.keep_ns = int(keep_s * 1e9)
         self._t: list[int] = []
@@ -63,44 +69,47 @@ class ImuBuffer:
     def add(self, s: ImuSample) -> bool:
         t = int(s.stamp_ns) - self.td_ns
         g, a = np.asarray(s.gyro, np.float64), np.asarray(s.accel, np.float64)
-        if not (np.isfinite(g).all() and np.isfinite(a).all()):
-            self.refused["non_finite"] += 1
-            return False
-        if self._t and t <= self._t[-1]:
-            self.refused["duplicate" if t == self._t[-1] else "out_of_order"] += 1
-            return False
-        self._t.append(t)
-        self._g.append(g)
-        self._a.append(a)
-        self.count += 1
-        self._cache = None
-        if self._t[-1] - self._t[0] > 2 * self.keep_ns:          # bounded memory
-            cut = int(np.searchsorted(np.asarray(self._t), self._t[-1] - self.keep_ns))
-            del self._t[:cut], self._g[:cut], self._a[:cut]
+        with self._lock:
+            if not (g.shape == (3,) and a.shape == (3,) and np.isfinite(g).all() and np.isfinite(a).all()):
+                self.refused["non_finite"] += 1
+                return False
+            if self._t and t <= self._t[-1]:
+                self.refused["duplicate" if t == self._t[-1] else "out_of_order"] += 1
+                return False
+            self._t.append(t)
+            self._g.append(g)
+            self._a.append(a)
+            self.count += 1
+            self._cache = None
+            if self._t[-1] - self._t[0] > 2 * self.keep_ns:          # bounded memory
+                cut = int(np.searchsorted(np.asarray(self._t), self._t[-1] - self.keep_ns))
+                del self._t[:cut], self._g[:cut], self._a[:cut]
         return True
 
     def arrays(self) -> ImuArrays:
-        if self._cache is None:
-            self._cache = ImuArrays(np.asarray(self._t, np.int64), np.asarray(self._g).reshape(-1, 3),
-                                    np.asarray(self._a).reshape(-1, 3))
-        return self._cache
+        with self._lock:
+            if self._cache is None:
+                self._cache = ImuArrays(np.asarray(self._t, np.int64), np.asarray(self._g).reshape(-1, 3),
+                                        np.asarray(self._a).reshape(-1, 3))
+            return self._cache
 
     def covers(self, t0_ns: int, t1_ns: int, max_gap_s: float) -> Optional[str]:
         """Why ``[t0_ns, t1_ns]`` cannot be pre-integrated (``None`` when it can): no reading at or
-        before ``t0``, none at or after ``t1`` yet, or a gap longer than ``max_gap_s``."""
-        if not self._t:
-            return "no IMU readings yet"
+        before ``t0`` (:data:`BEFORE`), none near ``t1`` yet (:data:`NOT_YET`: wait for them), or a
+        gap longer than ``max_gap_s`` (:data:`GAP`). The reason starts with its kind."""
         st = self.arrays().stamps_ns
+        if not len(st):
+            return f"{NOT_YET}: no IMU readings yet"
         if st[0] > t0_ns:
-            return f"no IMU reading before {t0_ns} ns"
+            return f"{BEFORE}: no IMU reading before {t0_ns} ns"
         if st[-1] < t1_ns - int(max_gap_s * 1e9):
-            return f"IMU readings end at {int(st[-1])} ns, before {t1_ns} ns"
+            return f"{NOT_YET}: IMU readings end at {int(st[-1])} ns, before {t1_ns} ns"
         i0 = int(np.searchsorted(st, t0_ns, side="right")) - 1
         i1 = int(np.searchsorted(st, t1_ns, side="left"))
         seg = np.concatenate([[t0_ns], st[i0 + 1:i1], [min(t1_ns, int(st[-1])) if i1 >= len(st) else t1_ns]])
         gap = float(np.diff(seg).max(initial=0)) * 1e-9
         if gap > max_gap_s:
-            return f"IMU gap of {gap:.3f} s (> max_imu_gap_s {max_gap_s:g})"
+            return f"{GAP}: IMU gap of {gap:.3f} s (> max_imu_gap_s {max_gap_s:g})"
         return None
 
 
@@ -210,7 +219,9 @@ class ViFusion:
             return
         T_wc = [fe.pose(s) for s in kfs]
         al = align(T_wc, self.T_bc, pres, gravity=self.noise.gravity, g_tol=c.align_g_tol,
-                   max_residual=c.align_max_residual)
+                   max_residual=c.align_max_residual, max_scale_std=c.align_max_scale_std)
+        log.debug("vio: alignment over %d keyframes: %s (scale %.4g, relative std %.4f, residual %.3g)",
+                  len(kfs), al.why, al.scale, al.scale_std, al.residual_rms)
         self.alignment = al
         if not al.ok:
             self.alignments_refused += 1
@@ -237,7 +248,8 @@ class ViFusion:
         if self.initialised_at_ns is None:
             self.initialised_at_ns = int(kfs[-1])
         self.reason = (f"visual-inertial since keyframe {kfs[-1]}: scale {al.scale:.4g}, gyro bias "
-                       f"{np.round(al.bg, 4).tolist()} rad/s, alignment residual {al.residual_rms:.3g}")
+                       f"{np.round(al.bg, 4).tolist()} rad/s, scale std {100 * al.scale_std:.2f} %, alignment "
+                       f"residual {al.residual_rms:.3g}")
         self.events.append(f"initialised: {self.reason}")
         log.info("vio: %s", self.events[-1])
 
@@ -263,8 +275,9 @@ class ViFusion:
         prev = sm.window_stamps()[-1]
         why = self.imu.covers(prev, s, self.cfg.max_imu_gap_s)
         if why is not None:
-            self.reset(why)
-            return False
+            if not why.startswith(NOT_YET):      # a gap: the IMU chain is broken
+                self.reset(why)
+            return False                         # not there yet: the next keyframe adds both
         est = sm.latest()
         import gtsam
         pim = gtsam_preintegrate(self.imu.arrays(), prev, s, self.params,

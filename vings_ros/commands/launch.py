@@ -23,6 +23,8 @@ def register(subparsers) -> None:
     p.add_argument("--no-mapper", action="store_true", help="leave the mapper out (front end alone)")
     p.add_argument("--backpressure", action="store_true",
                    help="front end queue policy 'backpressure' (use with `vings replay --wait-for-graph`)")
+    p.add_argument("--no-imu", action="store_true",
+                   help="visual-only front end: do not fuse the IMU (vio.enabled false)")
     p.add_argument("-p", "--param", action="append", default=[], metavar="SECTION.KEY=VALUE",
                    help="override one parameter of every node, e.g. -p mapping.iters_per_keyframe=20")
     p.set_defaults(func=run)
@@ -42,6 +44,8 @@ def run(args: argparse.Namespace) -> int:
         extra[key] = val
     if args.backpressure:
         extra["frontend_node.queue_policy"] = "backpressure"
+    if args.no_imu:
+        extra["vio.enabled"] = "false"
     nodes = tuple(n for n in default_nodes() if n != "mapper_node") if args.no_mapper else None
     opt = LaunchOptions(params_file=args.params or str(default_params_file()), record=args.record,
                         use_sim_time=args.use_sim_time, domain_id=args.domain_id,

@@ -21,6 +21,8 @@ def register(subparsers) -> None:
                    help="map with ground-truth poses and depth (sources that have both)")
     p.add_argument("--sync", action="store_true",
                    help="deterministic: the mapper finishes each keyframe before tracking goes on")
+    p.add_argument("--no-imu", action="store_true",
+                   help="visual-only: do not fuse the IMU even when the recording has one (vio.enabled false)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.add_argument("--json", action="store_true", help="print metrics.json as one JSON line at the end")
     p.add_argument("--profile", action="store_true",
@@ -39,13 +41,18 @@ def run(args: argparse.Namespace) -> int:
     if not str(args.out).strip():
         raise ConfigError("--out: give an output folder (an empty path would write into the current folder)")
     # every section (the nodes' too) before any work: a typo fails at once
+    from vings_core.config import load_section
+    from vings_core.vio.config import ViConfig
     cfg = check_params_file(args.params)["run"] if args.params else RunConfig()
+    vio_cfg = load_section(ViConfig, "vio", args.params)
+    vio_cfg.enabled = vio_cfg.enabled and not args.no_imu
     cfg.sync = cfg.sync or args.sync
     cfg.gt_poses = cfg.gt_poses or args.gt_poses
     source = open_working_source(args.source, source_options(args), cfg.width, cfg.height)
     for w in source.warnings:
         print(f"vings run: warning: {w}", file=sys.stderr)
-    runner = SlamRunner(source, args.out, params_file=args.params, run_cfg=cfg, progress=not args.no_progress)
+    runner = SlamRunner(source, args.out, params_file=args.params, run_cfg=cfg, progress=not args.no_progress,
+                        vio_cfg=vio_cfg)
     if args.profile:
         PROFILE.enable()
     metrics = runner.run()

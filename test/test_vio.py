@@ -1,0 +1,222 @@
+"""Visual-inertial fusion pieces (vings_core/vio): pre-integration, the visual factor on body poses,
+the alignment and the smoother's marginalisation."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+gtsam = pytest.importorskip("gtsam")
+
+from vings_core.sim.imu import G_WORLD, simulate_imu  # noqa: E402
+from vings_core.sim.trajectory import random_handheld  # noqa: E402
+from vings_core.types import ImuSample  # noqa: E402
+from vings_core.vio.align import align, excitation, gravity_alignment  # noqa: E402
+from vings_core.vio.fusion import ImuBuffer  # noqa: E402
+from vings_core.vio.preint import (ImuArrays, ImuNoiseConfig, gtsam_params, gtsam_preintegrate,  # noqa: E402
+                                   predict, preintegrate)
+from vings_core.vio.smoother import NavEstimate, WindowSmoother, _keys  # noqa: E402
+from vings_core.vio.visual_factor import camera_to_body_system, visual_factor  # noqa: E402
+
+
+def _pose(rng, rot=0.5, trans=1.0) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3] = gtsam.Rot3.Expmap(rng.normal(size=3) * rot).matrix()
+    T[:3, 3] = rng.normal(size=3) * trans
+    return T
+
+
+@pytest.fixture(scope="module")
+def motion():
+    """A handheld motion, its exact 200 Hz IMU, and a non-identity camera-to-body extrinsic."""
+    rng = np.random.default_rng(1)
+    m = random_handheld(rng, np.zeros(3), np.array([1.0, 1.0]), 1.2, 0.9)
+    t = np.arange(0, 6, 0.005)
+    d = simulate_imu(m, t)
+    T_bc = np.eye(4)
+    T_bc[:3, :3] = gtsam.Rot3.Ypr(0.1, -0.2, 1.5).matrix()
+    T_bc[:3, 3] = [0.05, -0.02, 0.01]
+    return m, ImuArrays((t * 1e9).round().astype(np.int64), d.gyro, d.accel), T_bc
+
+
+def test_preintegration_predicts_the_simulators_exact_motion(motion):
+    m, imu, _ = motion
+    pre = preintegrate(imu, 1_000_000_000, 1_500_000_000)
+    s = m.sample(np.array([1.0, 1.5]))
+    R, p, v = predict(pre, s.R[0], s.p[0], s.v[0], G_WORLD)
+    # zero-order hold of 200 Hz readings: sub-millimetre over 0.5 s
+    assert np.abs(p - s.p[1]).max() < 5e-4
+    assert np.abs(v - s.v[1]).max() < 2e-3
+    assert np.abs(R - s.R[1]).max() < 5e-4
+
+
+def test_reference_preintegration_equals_gtsam_and_bias_jacobians_hold(motion):
+    _, imu, _ = motion
+    pre = preintegrate(imu, 1_000_000_000, 1_500_000_000)
+    pim = gtsam_preintegrate(imu, 1_000_000_000, 1_500_000_000, gtsam_params(ImuNoiseConfig()))
+    assert np.abs(pim.deltaRij().matrix() - pre.dR).max() < 1e-6
+    assert np.abs(pim.deltaPij() - pre.dp).max() < 1e-6
+    assert np.abs(pim.deltaVij() - pre.dv).max() < 1e-6
+    bg, ba = np.array([0.01, -0.02, 0.015]), np.array([0.05, 0.02, -0.03])
+    exact = preintegrate(imu, 1_000_000_000, 1_500_000_000, bg, ba)
+    dR, dv, dp = pre.corrected(bg, ba)
+    first_order = max(np.abs(dR - exact.dR).max(), np.abs(dv - exact.dv).max(), np.abs(dp - exact.dp).max())
+    uncorrected = np.abs(pre.dv - exact.dv).max()
+    assert first_order < 0.02 * uncorrected
+
+
+def test_visual_factor_on_body_poses_matches_finite_differences():
+    rng = np.random.default_rng(0)
+    T_bc, M = _pose(rng), 3
+    A = rng.normal(size=(6 * M, 6 * M))
+    G, g = A @ A.T + np.eye(6 * M), rng.normal(size=6 * M)
+    T_wb = [_pose(rng) for _ in range(M)]
+    keys = [gtsam.symbol("x", i) for i in range(M)]
+    f = visual_factor(G, g, T_bc, keys, T_wb)
+    v0, v1 = gtsam.Values(), gtsam.Values()
+    d_b = rng.normal(size=6 * M) * 1e-4
+    d_c = []
+    for i, (k, T) in enumerate(zip(keys, T_wb)):
+        moved = gtsam.Pose3(T).retract(d_b[6 * i:6 * i + 6])
+        v0.insert(k, gtsam.Pose3(T))
+        v1.insert(k, moved)
+        # the camera perturbation the body perturbation causes, measured on the poses
+        d_c.append(gtsam.Pose3.Logmap(gtsam.Pose3(T @ T_bc).between(moved * gtsam.Pose3(T_bc))))
+    d_c = np.concatenate(d_c)
+    expected = 0.5 * d_c @ G @ d_c - d_c @ g
+    assert f.error(v1) - f.error(v0) == pytest.approx(expected, rel=1e-6, abs=1e-12)
+    assert f.error(v0) >= 0.0                      # LM moves: the constant keeps the error >= 0
+    Gb, gb = camera_to_body_system(G, g, T_bc)
+    assert np.allclose(Gb, Gb.T) and np.linalg.eigvalsh(Gb).min() > 0
+
+
+def _visual_world(m, T_bc, kt, Rw, s_true):
+    s = m.sample(kt)
+    out = []
+    for R, p in zip(s.R, s.p):
+        T_wb = np.eye(4)
+        T_wb[:3, :3], T_wb[:3, 3] = R, p
+        T = T_wb @ T_bc
+        Tv = np.eye(4)
+        Tv[:3, :3], Tv[:3, 3] = Rw @ T[:3, :3], Rw @ T[:3, 3] / s_true
+        out.append(Tv)
+    return out
+
+
+def test_alignment_recovers_scale_gravity_and_gyro_bias(motion):
+    m, imu, T_bc = motion
+    bg_true = np.array([0.01, -0.02, 0.005])
+    biased = ImuArrays(imu.stamps_ns, imu.gyro + bg_true, imu.accel)
+    kt = np.arange(1.0, 3.01, 0.1)
+    Rw, s_true = gtsam.Rot3.Ypr(0.7, 0.3, -0.4).matrix(), 2.5
+    T_wc = _visual_world(m, T_bc, kt, Rw, s_true)
+    ns = (kt * 1e9).round().astype(np.int64)
+    pres = [preintegrate(biased, int(a), int(b)) for a, b in zip(ns[:-1], ns[1:])]
+    assert excitation(pres) > 0.25
+    al = align(T_wc, T_bc, pres)
+    assert al.ok, al.why
+    assert al.scale == pytest.approx(s_true, rel=0.005)
+    assert np.abs(al.bg - bg_true).max() < 1e-3
+    g_true = Rw @ G_WORLD
+    assert np.degrees(np.arccos(al.g_w @ g_true / 9.81 ** 2)) < 0.1
+    # the similarity takes the visual world to the metric z-up frame: true gravity becomes -z
+    R = al.C[:3, :3] / al.scale
+    assert np.allclose(R @ g_true / 9.81, [0, 0, -1], atol=2e-3)
+    assert np.allclose(gravity_alignment(np.array([0, 0, -9.81])), np.eye(3))
+
+
+def test_alignment_is_refused_when_the_imu_contradicts_the_images(motion):
+    m, imu, T_bc = motion
+    kt = np.arange(1.0, 3.01, 0.1)
+    T_wc = _visual_world(m, T_bc, kt, np.eye(3), 2.0)
+    ns = (kt * 1e9).round().astype(np.int64)
+    # accelerometer in g instead of m/s^2: |g| comes out far from 9.81
+    wrong = ImuArrays(imu.stamps_ns, imu.gyro, imu.accel / 9.81)
+    al = align(T_wc, T_bc, [preintegrate(wrong, int(a), int(b)) for a, b in zip(ns[:-1], ns[1:])])
+    assert not al.ok and al.C is None
+    assert "gravity" in al.why or "scale" in al.why or "residual" in al.why
+
+
+def _relative_pose_system(T_true, T_lin, sigma=0.01):
+    """Dense information of relative-pose measurements between consecutive camera poses (truth),
+    linearised at ``T_lin`` (a stand-in for the dense BA's pose system)."""
+    keys = [gtsam.symbol("c", i) for i in range(len(T_lin))]
+    vals, graph = gtsam.Values(), gtsam.NonlinearFactorGraph()
+    for k, T in zip(keys, T_lin):
+        vals.insert(k, gtsam.Pose3(T))
+    for i in range(len(T_lin) - 1):
+        z = gtsam.Pose3(T_true[i]).between(gtsam.Pose3(T_true[i + 1]))
+        graph.add(gtsam.BetweenFactorPose3(keys[i], keys[i + 1], z, gtsam.noiseModel.Isotropic.Sigma(6, sigma)))
+    order = gtsam.Ordering()
+    for k in keys:
+        order.push_back(k)
+    return graph.linearize(vals).hessian(order)
+
+
+def test_smoother_converges_and_its_marginalisation_prior_is_the_schur_complement(motion):
+    m, imu, T_bc = motion
+    rng = np.random.default_rng(2)
+    params = gtsam_params(ImuNoiseConfig())
+    kt = np.arange(1.0, 2.21, 0.1)
+    ns = (kt * 1e9).round().astype(np.int64)
+    s = m.sample(kt)
+    T_wb = []
+    for R, p in zip(s.R, s.p):
+        T = np.eye(4)
+        T[:3, :3], T[:3, 3] = R, p
+        T_wb.append(T)
+    sm = WindowSmoother(params, T_bc)
+    sm.start(NavEstimate(int(ns[0]), T_wb[0], s.v[0], np.zeros(3), np.zeros(3)), [1e-3] * 6, 1e-2, 0.1, 0.01)
+    for k in range(1, len(ns)):
+        guess = T_wb[k].copy()
+        guess[:3, 3] += rng.normal(size=3) * 0.05                     # 5 cm off
+        sm.add(int(ns[k]), gtsam_preintegrate(imu, int(ns[k - 1]), int(ns[k]), params), guess)
+    lin = [sm.estimate(int(t)).T_wb @ T_bc for t in ns]
+    H, eta = _relative_pose_system([T @ T_bc for T in T_wb], lin)
+    sm.set_visual(H, eta, list(ns), lin)
+    sm.optimize(10)
+    err = max(np.abs(sm.estimate(int(t)).T_wb[:3, 3] - T[:3, 3]).max() for t, T in zip(ns, T_wb))
+    assert err < 2e-3
+
+    # the prior left by marginalising the oldest state = Schur complement of the factors touching it
+    old = sm.states[0]
+    touching = [t for t in sm.priors + sm.imu if old in t.states]
+    graph = gtsam.NonlinearFactorGraph()
+    for t in touching:
+        graph.add(t.factor)
+    others = sorted({x for t in touching for x in t.states} - {old})
+    order = gtsam.Ordering()
+    rest_keys = [k for o in others for k in _keys(o)]
+    for k in list(_keys(old)) + rest_keys:
+        order.push_back(k)
+    Hf, _ = graph.linearize(sm.values).hessian(order)
+    Hs = Hf[15:, 15:] - Hf[15:, :15] @ np.linalg.solve(Hf[:15, :15], Hf[:15, 15:])
+    sm.marginalize_oldest()
+    prior = gtsam.NonlinearFactorGraph()
+    for t in sm.priors:
+        prior.add(t.factor)
+    order2 = gtsam.Ordering()
+    for k in rest_keys:
+        order2.push_back(k)
+    H2, _ = prior.linearize(sm.values).hessian(order2)
+    assert np.abs(H2 - Hs).max() <= 1e-9 * np.abs(Hs).max()
+    assert len(sm.states) == len(ns) - 1 and int(ns[0]) not in sm.window_stamps()
+    sm.optimize(3)
+    assert max(np.abs(sm.estimate(int(t)).T_wb[:3, 3] - T[:3, 3]).max() for t, T in zip(ns[1:], T_wb[1:])) < 2e-3
+
+
+def test_imu_buffer_refuses_and_counts_bad_readings():
+    buf = ImuBuffer(td_ns=5_000_000)
+    ok = lambda t: ImuSample(t, np.zeros(3), np.array([0, 0, 9.81]))  # noqa: E731
+    assert buf.add(ok(100_000_000))
+    assert not buf.add(ok(100_000_000))                     # duplicate
+    assert not buf.add(ok(50_000_000))                      # out of order
+    assert not buf.add(ImuSample(200_000_000, np.array([np.nan, 0, 0]), np.zeros(3)))
+    assert buf.refused == {"out_of_order": 1, "duplicate": 1, "non_finite": 1}
+    for t in range(105_000_000, 400_000_000, 5_000_000):
+        buf.add(ok(t))
+    assert buf.arrays().stamps_ns[0] == 95_000_000          # camera clock: t_imu - td
+    assert buf.covers(100_000_000, 300_000_000, 0.1) is None
+    assert buf.covers(10_000_000, 300_000_000, 0.1).startswith("no IMU before")
+    assert buf.covers(300_000_000, 600_000_000, 0.1).startswith("IMU not there yet")
+    buf.add(ok(700_000_000))                                 # a 0.3 s gap
+    assert buf.covers(300_000_000, 690_000_000, 0.1).startswith("IMU gap")
