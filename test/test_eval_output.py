@@ -17,7 +17,8 @@ from vings_core.types import Trajectory
 
 CONTRACT_KEYS = ["frames", "frames_tracked", "keyframes", "wall_s", "fps", "ate_sim3_m", "ate_se3_m",
                  "sim3_scale", "rpe", "psnr_keyframes_db", "psnr_novel_db", "ssim_keyframes",
-                 "num_gaussians", "peak_rss_mb", "keyframes_light", "queue_peak_keyframes", "queue_spilled", "frames_unposed", "frames_unposed_reason", "segments", "ate_segments_m"]
+                 "num_gaussians", "peak_rss_mb", "keyframes_light", "queue_peak_keyframes", "queue_spilled", "frames_unposed", "frames_unposed_reason", "segments", "ate_segments_m",
+                 "vi_state", "vi_initialised_at_s", "scale_observable", "acc_bias", "gyro_bias", "td_s"]
 
 
 def test_metric_keys_are_the_contract():
@@ -44,6 +45,10 @@ def test_write_metrics_fills_validates_and_is_json(tmp_path):
         out.write_metrics({"frames": 2.5})
     with pytest.raises(ValueError, match="'fps' must be a number"):
         out.write_metrics({"fps": "fast"})
+    with pytest.raises(ValueError, match="'scale_observable' must be true, false or None"):
+        out.write_metrics({"scale_observable": 1})
+    with pytest.raises(ValueError, match="'gyro_bias' must be a list"):
+        out.write_metrics({"gyro_bias": 0.1})
     # failed writes left the old file intact and no temp files behind
     assert json.loads(out.metrics_path.read_text()) == written
     assert sorted(p.name for p in out.out_dir.iterdir()) == ["metrics.json"]
