@@ -341,3 +341,42 @@ def test_abandon_undoes_increments_the_stopped_keeper_never_answered():
     for s in fe.poses:
         np.testing.assert_allclose(mp.poses[s], fe.poses[s], atol=1e-12)
     assert not followers["mapper"].in_flight
+
+
+def test_keeper_carries_its_owners_own_similarity_to_the_followers():
+    """The front end's visual-inertial alignment moves and scales its keyframes itself: the keeper's
+    next batch carries that similarity (with its scale), so the mapper scales its Gaussians too."""
+    from vings_core.exchange import PoseKeeper
+    from vings_core.geometry import sim3_apply_to_pose
+
+    class Owner:
+        kf_pose_version = 0
+        pose_system = None
+
+        def __init__(self):
+            self.poses = {}
+
+        def pose(self, s):
+            return self.poses[s]
+
+        def keyframes_moved_since(self, version):
+            return list(self.poses)
+
+        def apply_increments(self, incs):
+            raise AssertionError("not called here")
+
+    owner = Owner()
+    T = np.eye(4)
+    T[:3, 3] = [1.0, 2.0, 0.5]
+    owner.poses[7] = T.copy()
+    keeper = PoseKeeper(owner)
+    keeper.keyframe_sent(7, T)
+    assert keeper.outgoing() is None or 7 not in keeper.outgoing().increments
+    C = np.eye(4)
+    C[:3, :3] = 2.5 * np.array([[0, -1, 0], [1, 0, 0], [0, 0, 1.0]])
+    owner.poses[7] = sim3_apply_to_pose(C, T)
+    keeper.own_similarity({7: C, 99: C})            # 99 was never sent: ignored
+    batch = keeper.outgoing()
+    assert set(batch.increments) == {7}
+    assert np.allclose(batch.increments[7], C)      # the scale travels, not a rigid stand-in
+    assert keeper.outgoing() is None                # sent once
