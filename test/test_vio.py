@@ -220,3 +220,17 @@ def test_imu_buffer_refuses_and_counts_bad_readings():
     assert buf.covers(300_000_000, 600_000_000, 0.1).startswith("IMU not there yet")
     buf.add(ok(700_000_000))                                 # a 0.3 s gap
     assert buf.covers(300_000_000, 690_000_000, 0.1).startswith("IMU gap")
+
+
+def test_so3_log_matches_scipy_everywhere():
+    from scipy.spatial.transform import Rotation
+    from vings_core.vio.preint import so3_log_np
+    rng = np.random.default_rng(5)
+    vecs = list(rng.normal(size=(50, 3))) + [np.array([1e-9, 0, 0]), np.array([0, 0, np.pi - 1e-6]),
+                                              np.array([np.pi - 1e-3, 0, 0]) / np.sqrt(1.0)]
+    for v in vecs:
+        v = np.asarray(v, float)
+        if np.linalg.norm(v) > np.pi:
+            v = v / np.linalg.norm(v) * (np.linalg.norm(v) % np.pi)
+        R = Rotation.from_rotvec(v).as_matrix()
+        assert np.allclose(so3_log_np(R), Rotation.from_matrix(R).as_rotvec(), atol=1e-5)

@@ -28,9 +28,20 @@ def _exp_np(phi: np.ndarray) -> np.ndarray:
 
 
 def so3_log_np(R: np.ndarray) -> np.ndarray:
-    """SO(3) logarithm (rotation vector, rad)."""
-    from scipy.spatial.transform import Rotation
-    return Rotation.from_matrix(R).as_rotvec()
+    """SO(3) logarithm (rotation vector, rad); accurate near 0 and near pi."""
+    c = np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0)
+    th = float(np.arccos(c))
+    w = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
+    if th < 1e-6:
+        return 0.5 * w
+    if np.pi - th < 1e-4:
+        # near pi: the axis from the symmetric part (w vanishes there)
+        B = (R + np.eye(3)) / 2.0
+        k = int(np.argmax(np.diag(B)))
+        axis = B[:, k] / np.sqrt(max(B[k, k], 1e-300))
+        axis *= np.sign(axis @ w) if abs(axis @ w) > 0 else 1.0
+        return th * axis / np.linalg.norm(axis)
+    return th / (2.0 * np.sin(th)) * w
 
 
 def _hat(w: np.ndarray) -> np.ndarray:
