@@ -234,3 +234,25 @@ def test_so3_log_matches_scipy_everywhere():
             v = v / np.linalg.norm(v) * (np.linalg.norm(v) % np.pi)
         R = Rotation.from_rotvec(v).as_matrix()
         assert np.allclose(so3_log_np(R), Rotation.from_matrix(R).as_rotvec(), atol=1e-5)
+
+
+def test_a_keyframe_packet_moves_into_the_metric_frame_with_its_depth():
+    import torch
+    from vings_core.geometry import sim3_apply_to_pose
+    from vings_core.types import CameraModel, Keyframe
+    from vings_core.vio.fusion import scale_keyframe
+    cam = CameraModel(16, 8, 10.0, 10.0, 7.5, 3.5)
+    T = np.eye(4)
+    T[:3, 3] = [0.1, 0.2, 0.3]
+    kf = Keyframe(5, torch.zeros(8, 16, 3), torch.from_numpy(T), torch.full((8, 16), 2.0),
+                  torch.full((8, 16), 0.04), torch.ones(8, 16, dtype=torch.bool), cam)
+    C = np.eye(4)
+    C[:3, :3] = 3.0 * gtsam.Rot3.Ypr(0.3, 0.1, -0.2).matrix()
+    C[:3, 3] = [1.0, -1.0, 0.5]
+    out = scale_keyframe(kf, C)
+    assert np.allclose(out.T_wc.numpy(), sim3_apply_to_pose(C, T))
+    # a point seen at depth d along the optical axis lands where C maps it
+    p_old = T[:3, :3] @ np.array([0, 0, 2.0]) + T[:3, 3]
+    p_new = out.T_wc.numpy()[:3, :3] @ np.array([0, 0, float(out.depth[0, 0])]) + out.T_wc.numpy()[:3, 3]
+    assert np.allclose(p_new, C[:3, :3] @ p_old + C[:3, 3])
+    assert float(out.inv_depth_var[0, 0]) == pytest.approx(0.04 / 9.0)

@@ -21,13 +21,15 @@ from __future__ import annotations
 
 import logging
 import threading
+from dataclasses import replace
 from enum import Enum
 from typing import TYPE_CHECKING, Optional
 
 import numpy as np
 
 from ..errors import ConfigError
-from ..types import Calibration, ImuSample
+from ..geometry import sim3_apply_to_pose
+from ..types import Calibration, ImuSample, Keyframe
 from .align import Alignment, align, excitation
 from .config import ViConfig
 from .preint import ImuArrays, ImuNoiseConfig, gtsam_params, gtsam_preintegrate, preintegrate
@@ -111,6 +113,16 @@ class ImuBuffer:
         if gap > max_gap_s:
             return f"{GAP}: IMU gap of {gap:.3f} s (> max_imu_gap_s {max_gap_s:g})"
         return None
+
+
+def scale_keyframe(kf: Keyframe, C: np.ndarray) -> Keyframe:
+    """``kf`` moved by the similarity ``C`` (``x -> s R x + t``): pose by
+    :func:`~vings_core.geometry.sim3_apply_to_pose`, depth times ``s``, inverse-depth variance
+    divided by ``s^2``."""
+    import torch
+    s = float(np.cbrt(np.linalg.det(C[:3, :3])))
+    T = sim3_apply_to_pose(C, kf.T_wc.detach().cpu().numpy().astype(np.float64))
+    return replace(kf, T_wc=torch.from_numpy(T), depth=kf.depth * s, inv_depth_var=kf.inv_depth_var / (s * s))
 
 
 class ViFusion:
@@ -237,6 +249,9 @@ class ViFusion:
         seg = fe.init.segment.index
         stamps = fe.buffer.stamps_of_segment(seg)
         fe.apply_increments({s: C for s in stamps})
+        # keyframes emitted by this same window BA and not handed on yet: their packets were made
+        # in the visual frame; they leave in the metric one (pose, depth and its variance)
+        fe.win.emitted = [scale_keyframe(kf, C) for kf in fe.win.emitted]
         for s in fe.buffer.keyframes_of_segment(seg):
             self.similarities[s] = C
         fe.win.after_change(None)              # the window's pose system at the metric poses
