@@ -292,3 +292,43 @@ def test_recorder_writes_atomically_and_reports_write_errors_in_one_line(tmp_pat
     assert "what was written so far is in" in res["error"]
     assert res["shutdown"].startswith("VingsError: ") and "partial file stays at" in res["shutdown"]
     assert not (tmp_path / "b.mcap").exists()
+
+
+IMU_FUSION_SCRIPT = """
+import json, sys
+import rclpy
+from sensor_msgs.msg import Imu
+from msg_adapters.diagnostics import parse_diagnostic_array
+args = ["x", "--ros-args"] + (["-p", f"frontend_node.calib_file:={sys.argv[1]}"] if sys.argv[1] else [])
+rclpy.init(args=args)
+from vings_ros.frontend_node import FrontendNode
+node = FrontendNode()
+sent = []
+node.pub_diag.publish = sent.append
+for k in range(3):
+    m = Imu()
+    m.header.stamp.nanosec = 5_000_000 * (k + 1)
+    m.linear_acceleration.z = 9.81
+    node._on_imu(m)
+node.publish_diagnostics()
+st = parse_diagnostic_array(sent[-1])["status"]["vings/frontend"]
+vio = node.frontend.vio if node.frontend is not None else None
+res = {"level": st["level"], "message": st["message"], "vi_state": st["values"].get("vi_state"),
+       "fused": vio is not None, "buffered": vio.imu.count if vio is not None else 0}
+node.queue.close(); node.worker.stop(5)
+node.destroy_node(); rclpy.shutdown()
+print("RESULT " + json.dumps(res))
+"""
+
+
+def test_frontend_node_fuses_the_imu_only_with_a_known_extrinsic(tmp_path):
+    # without a calibration file the camera-IMU extrinsic is unknown: visual-only, ERROR, not identity
+    res = _run(IMU_FUSION_SCRIPT, "")
+    assert res["level"] == "error" and "T_bc" in res["message"] and not res["fused"], res
+    # a VINGS calibration with T_bc: the fusion runs and the readings reach its buffer
+    calib = tmp_path / "cal.yaml"
+    calib.write_text("camera: {width: 64, height: 48, fx: 50.0, fy: 52.0, cx: 31.5, cy: 23.5}\n"
+                     "T_bc: [[0, 0, 1, 0.05], [-1, 0, 0, 0], [0, -1, 0, 0], [0, 0, 0, 1]]\nhas_imu: true\n")
+    res = _run(IMU_FUSION_SCRIPT, str(calib))
+    assert res["fused"] and res["buffered"] == 3 and res["level"] != "error", res
+    assert res["vi_state"] == "initialising", res
