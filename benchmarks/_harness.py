@@ -73,3 +73,16 @@ def run_experiments(steps: Iterable[tuple[str, Callable[[], Any]]], out: dict,
             print(json.dumps(to_json(out)), flush=True)
             signal.signal(signal.SIGTERM, old)
     return 1 if failed else 0
+
+
+def run_selected(ap, args, table: dict, log: Callable[..., None] = _stderr) -> int:
+    """Run the experiments of ``table`` (name -> function) that ``args.exp`` names (comma list, in
+    its order; an unknown name is a usage error of ``ap``), with the configuration and the load at
+    the start in the JSON."""
+    import os
+    names = [e for e in args.exp.split(",") if e]
+    bad = [e for e in names if e not in table]
+    if bad:
+        ap.error(f"unknown experiment(s) {bad}; known: {', '.join(table)}")
+    out = {"config": vars(args), "load_avg_1m_start": os.getloadavg()[0]}
+    return run_experiments([(n, table[n]) for n in names], out, log)

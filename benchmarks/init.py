@@ -33,7 +33,7 @@ import numpy as np
 
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
-from _harness import run_experiments  # noqa: E402
+from _harness import run_selected  # noqa: E402
 
 SHARED = HERE.parent.parent / "shared" / "data"
 
@@ -251,12 +251,7 @@ def main(argv=None) -> int:
              "lowrate": lambda: exp_lowrate(a, cfg), "onset": lambda: exp_onset(a, cfg),
              "lost": lambda: exp_lost(a, cfg),
              "rotation": lambda: exp_rotation(a, cfg)}
-    names = [e for e in a.exp.split(",") if e]
-    bad = [e for e in names if e not in table]
-    if bad:
-        ap.error(f"unknown experiment(s) {bad}; known: {', '.join(table)}")
-    out = {"config": vars(a), "load_avg_1m_start": os.getloadavg()[0]}
-    return run_experiments([(n, table[n]) for n in names], out, log)
+    return run_selected(ap, a, table, log)
 
 
 if __name__ == "__main__":

@@ -29,7 +29,7 @@ import numpy as np
 
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
-from _harness import run_experiments  # noqa: E402
+from _harness import run_selected  # noqa: E402
 
 WORK = Path(os.environ.get("TMPDIR", "/tmp")) / "vings_bench_vio"
 
@@ -142,12 +142,7 @@ def main(argv=None) -> int:
     ap.add_argument("--street-frames", type=int, default=900, help="20 Hz frames (900: about 400 m)")
     a = ap.parse_args(argv)
     table = {"sim": lambda: exp_sim(a), "rates": lambda: exp_rates(a)}
-    names = [e for e in a.exp.split(",") if e]
-    bad = [e for e in names if e not in table]
-    if bad:
-        ap.error(f"unknown experiment(s) {bad}; known: {', '.join(table)}")
-    out = {"config": vars(a), "load_avg_1m_start": os.getloadavg()[0]}
-    return run_experiments([(n, table[n]) for n in names], out, log)
+    return run_selected(ap, a, table, log)
 
 
 if __name__ == "__main__":

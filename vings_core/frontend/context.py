@@ -20,6 +20,7 @@ from .config import FrontendConfig
 from .flow import (DISFlow, FlowEstimator, GridFlow, compose_flow, dense_from_grid, flow_around, grid_flow,
                    invert_flow, make_flow_estimator, texture_weight)
 from .projective import Intrinsics, grid_points, normalized_rays, project_edges
+from .seed import SeedFeatures, SparseMatches, match_features
 from ..profiling import profiled
 
 DT = torch.float64
@@ -101,6 +102,17 @@ class FrontendContext:
         gf10 = grid_flow(f10, f01, g1, g0, self.uv_np, STRIDE, self.cfg, tex1) if both else None
         self.stats["t_flow"] += time.perf_counter() - t
         return FlowPair(gf01, gf10, f01, f10)
+
+    def seed_matches(self, g0: np.ndarray, g1: np.ndarray) -> Optional[SparseMatches]:
+        """Sparse feature matches between two grey images for seeding the dense flow
+        (``seed_features``); ``None`` when seeding is off. Timed in ``stats['t_seed']``."""
+        kind = SeedFeatures(self.cfg.seed_features)
+        if kind == SeedFeatures.NONE:
+            return None
+        t = time.perf_counter()
+        m = match_features(g0, g1, kind, self.cfg.seed_max_features)
+        self.stats["t_seed"] += time.perf_counter() - t
+        return m
 
     def texture(self, gray: np.ndarray) -> np.ndarray:
         """``(h, w)`` texture weight of the grid points of a grey image."""

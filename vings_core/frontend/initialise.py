@@ -23,7 +23,7 @@ from . import ba as BA
 from .context import DT, STRIDE, FlowChain, FlowPair, FrontendContext, StampedPose
 from .flow import GridFlow, dense_from_grid
 from .pose_buffer import PoseBuffer
-from .seed import SeedFeatures, interpolate_displacements, match_features
+from .seed import interpolate_displacements
 from .window import KeyframeWindow, WindowKeyframe
 
 log = logging.getLogger("vings.frontend")
@@ -212,14 +212,11 @@ class Initialiser:
         that fit a fundamental matrix (no depth exists yet); ``None`` when seeding is off or too
         few matches agree."""
         ctx, cfg = self.ctx, self.ctx.cfg
-        kind = SeedFeatures(cfg.seed_features)
-        if kind == SeedFeatures.NONE:
+        m = ctx.seed_matches(ref.gray, gray)
+        if m is None:
             return None
-        t = time.perf_counter()
-        m = match_features(ref.gray, gray, kind, cfg.seed_max_features)
         disp = interpolate_displacements(m, ctx.uv_np, ransac_px=cfg.seed_ransac_px,
                                          min_inliers=cfg.seed_min_inliers)
-        ctx.stats["t_seed"] += time.perf_counter() - t
         if disp is None:
             return None
         ctx.stats["seeded"] += 1

@@ -18,7 +18,7 @@ from . import ba as BA
 from .context import DT, STRIDE, FlowChain, FrontendContext, StampedPose
 from .flow import GridFlow, flow_around, grid_flow, invert_flow
 from .pose_buffer import PoseBuffer
-from .seed import SeedFeatures, match_features, pnp_seed
+from .seed import pnp_seed
 from .projective import adjoint
 from .window import WindowKeyframe
 
@@ -153,11 +153,10 @@ class MotionTracker:
         then the dense flow around the flow that pose induces and motion-only BA from it. ``None``
         when seeding is off or no pose is found (the result still has to pass :meth:`check`)."""
         ctx, cfg = self.ctx, self.ctx.cfg
-        kind = SeedFeatures(cfg.seed_features)
-        if kind == SeedFeatures.NONE:
+        m = ctx.seed_matches(kf.gray, gray)
+        if m is None:
             return None
         t = time.perf_counter()
-        m = match_features(kf.gray, gray, kind, cfg.seed_max_features)
         d = kf.d.numpy().reshape(ctx.h, ctx.w)
         if kf.var is None:
             valid = d > 0
