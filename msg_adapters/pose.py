@@ -101,8 +101,11 @@ def pose_stamped_to_matrix(msg: PoseStamped, where: str = "pose") -> tuple[int, 
 
 def estimate_to_odometry(est: PoseEstimate, frame_id: str = WORLD_FRAME,
                          child_frame_id: str = CAMERA_FRAME,
-                         where: str = "odometry") -> Odometry:
-    """PoseEstimate -> Odometry: pose ``T_wc`` of ``child_frame_id`` in ``frame_id``."""
+                         where: str = "odometry", twist=None) -> Odometry:
+    """PoseEstimate -> Odometry: pose ``T_wc`` of ``child_frame_id`` in ``frame_id``; ``twist``:
+    optional ``(v, w[, cov])`` linear (m/s) and angular (rad/s) velocity in ``child_frame_id``
+    (REP-105) with their 6x6 covariance (``[v, w]``, the message's order), else the twist is marked
+    unknown (covariance[0] = -1)."""
     T = _check_pose(est.T_wc, f"{where}.pose")
     msg = Odometry(header=make_header(est.stamp_ns, frame_id, where),
                    child_frame_id=str(child_frame_id))
@@ -117,7 +120,19 @@ def estimate_to_odometry(est: PoseEstimate, frame_id: str = WORLD_FRAME,
         c = tangent_cov_to_ros(cov, T).reshape(-1)
     msg.pose.covariance = c
     tc = np.zeros(36)
-    tc[0] = -1.0
+    if twist is None:
+        tc[0] = -1.0
+    else:
+        v, w = (np.asarray(x, np.float64).reshape(3) for x in twist[:2])
+        if not (np.isfinite(v).all() and np.isfinite(w).all()):
+            raise InputError(f"{where}: twist must be finite, got {v}, {w}")
+        if len(twist) > 2 and twist[2] is not None:
+            tcov = np.asarray(twist[2], np.float64)
+            if tcov.shape != (6, 6) or not np.isfinite(tcov).all():
+                raise InputError(f"{where}: twist covariance must be a finite 6x6 matrix")
+            tc = tcov.reshape(-1).copy()
+        msg.twist.twist.linear.x, msg.twist.twist.linear.y, msg.twist.twist.linear.z = (float(x) for x in v)
+        msg.twist.twist.angular.x, msg.twist.twist.angular.y, msg.twist.twist.angular.z = (float(x) for x in w)
     msg.twist.covariance = tc
     return msg
 

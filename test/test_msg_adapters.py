@@ -335,6 +335,17 @@ def test_odometry_round_trip_and_frames():
     # unknown covariance <-> covariance[0] = -1
     msg = wire(ma.estimate_to_odometry(PoseEstimate(stamp_ns=5, T_wc=T)))
     assert msg.pose.covariance[0] == -1.0 and ma.odometry_to_estimate(msg).covariance is None
+    # a twist (camera frame) when the IMU is fused; non-finite is refused
+    msg = wire(ma.estimate_to_odometry(est, twist=([1.0, -2.0, 0.5], [0.1, 0.0, -0.3])))
+    tw = msg.twist.twist
+    assert (tw.linear.x, tw.linear.y, tw.linear.z) == (1.0, -2.0, 0.5)
+    assert (tw.angular.x, tw.angular.y, tw.angular.z) == (0.1, 0.0, -0.3)
+    assert msg.twist.covariance[0] != -1.0
+    tcov = np.diag([0.01, 0.01, 0.02, 1e-4, 1e-4, 2e-4])
+    msg = wire(ma.estimate_to_odometry(est, twist=([1.0, -2.0, 0.5], [0.1, 0.0, -0.3], tcov)))
+    np.testing.assert_allclose(np.asarray(msg.twist.covariance).reshape(6, 6), tcov)
+    with pytest.raises(InputError, match="twist must be finite"):
+        ma.estimate_to_odometry(est, twist=([np.nan, 0, 0], [0, 0, 0]))
 
 
 def test_odometry_covariance_follows_ros_convention():

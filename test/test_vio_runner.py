@@ -59,6 +59,19 @@ def test_fused_front_end_is_metric_gravity_aligned_and_hands_its_similarity_on(r
     assert abs(np.cbrt(np.linalg.det(C[:3, :3])) - vio.alignment.scale) < 1e-9
     st = fe.status()
     assert st["vi_state"] == "visual-inertial" and len(st["gyro_bias"]) == 3
+    # odometry twist of a late frame, in the camera frame, against finite differences of the truth
+    stamps = gt.stamps_ns
+    k = int(np.searchsorted(stamps, src.frame_stamps()[-3]))
+    s = int(stamps[k])
+    v_c, w_c, cov = vio.twist(s, fe.pose(s))
+    assert cov.shape == (6, 6) and np.all(np.diag(cov) > 0) and np.allclose(cov, cov.T)
+    dt = (stamps[k + 1] - stamps[k - 1]) * 1e-9
+    R = gt.poses[k][:3, :3]
+    v_true = R.T @ (gt.poses[k + 1][:3, 3] - gt.poses[k - 1][:3, 3]) / dt
+    from scipy.spatial.transform import Rotation
+    w_true = Rotation.from_matrix(gt.poses[k - 1][:3, :3].T @ gt.poses[k + 1][:3, :3]).as_rotvec() / dt
+    assert np.linalg.norm(v_c - v_true) < 0.1 * np.linalg.norm(v_true) + 0.02
+    assert np.linalg.norm(w_c - w_true) < 0.1 * np.linalg.norm(w_true) + 0.02
 
 
 def test_without_fusion_the_same_recording_has_an_arbitrary_scale(room):

@@ -230,8 +230,11 @@ class FrontendNode(StageNode):
                 # a back-filled pose (a frame that waited for initialisation) is published late,
                 # in stamp order, before the current frame's; /diagnostics counts them
                 self.late_poses += int(est.stamp_ns != stamp)
+                twist = (self.frontend.vio.twist(est.stamp_ns, est.T_wc)
+                         if self.frontend.vio is not None and est.stamp_ns == stamp else None)
                 self.pub_odom.publish(estimate_to_odometry(est, self.ros.world_frame,
-                                                           self.ros.camera_frame, T.ODOMETRY_TOPIC))
+                                                           self.ros.camera_frame, T.ODOMETRY_TOPIC,
+                                                           twist=twist))
         # as in `vings run`: moved keyframe poses first, then the new keyframes
         kfs = self.frontend.pop_keyframes()
         self._exchange_send(stamp)

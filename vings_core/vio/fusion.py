@@ -156,6 +156,7 @@ class ViFusion:
         self.scale_applied = 1.0
         self.similarities: dict[int, np.ndarray] = {}    # for the pose exchange (taken by the owner)
         self._tried_at: Optional[int] = None
+        self._marginals: Optional[tuple[np.ndarray, np.ndarray]] = None   # newest state's v, bias
         self.t_fusion = 0.0
 
     @staticmethod
@@ -310,6 +311,7 @@ class ViFusion:
             T_wc = [np.linalg.inv(T) for T in ps.T_cw.numpy()]
             sm.set_visual(G.numpy(), g.numpy(), list(ps.stamps_ns), T_wc, c.visual_weight)
         sm.optimize(c.smoother_iters)
+        self._marginals = sm.velocity_bias_covariance(sm.window_stamps()[-1])
         win = {k.stamp for k in fe.window}
         fe.set_poses({s: sm.estimate(s).T_wb @ self.T_bc for s in sm.window_stamps() if s in win})
         # keyframes that left the window take their visual information into the prior
@@ -340,6 +342,40 @@ class ViFusion:
         so the followers scale their content too)."""
         out, self.similarities = self.similarities, {}
         return out
+
+    def twist(self, stamp_ns: int, T_wc: np.ndarray) -> Optional[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+        """Velocity (m/s), angular rate (rad/s) and their 6x6 covariance (``[v, w]``) of the camera
+        at ``stamp_ns`` (pose ``T_wc``), in the camera frame, when visual-inertial: the newest
+        keyframe state propagated with the IMU to ``stamp_ns`` (its velocity and the
+        bias-corrected gyro of the last reading, plus the lever arm ``w x p_bc``). The covariance
+        is the smoother's marginal of that state's velocity and gyro bias (plus the gyro's white
+        noise at the IMU rate), rotated into the camera frame; the propagation's own growth is not
+        added. ``None`` when not visual-inertial or without IMU readings up to the stamp."""
+        if self.smoother is None or not self.smoother.states:
+            return None
+        est = self.smoother.latest()
+        if stamp_ns < est.stamp_ns or self.imu.covers(est.stamp_ns, stamp_ns, self.cfg.max_imu_gap_s) is not None:
+            return None
+        arr = self.imu.arrays()
+        v_w = est.v
+        if stamp_ns > est.stamp_ns:
+            pre = preintegrate(arr, est.stamp_ns, stamp_ns, est.bg, est.ba)
+            v_w = est.v + np.array([0.0, 0.0, -self.noise.gravity]) * pre.dt + est.T_wb[:3, :3] @ pre.dv
+        k = int(np.searchsorted(arr.stamps_ns, stamp_ns, side="right")) - 1
+        w_b = arr.gyro[max(k, 0)] - est.bg
+        R_bc, p_bc = self.T_bc[:3, :3], self.T_bc[:3, 3]
+        R_cw = np.asarray(T_wc, np.float64)[:3, :3].T
+        # camera velocity = body velocity + w x (lever arm), all in the world, then into the camera
+        R_wb = np.asarray(T_wc, np.float64)[:3, :3] @ R_bc.T
+        v_c = R_cw @ (v_w + R_wb @ np.cross(w_b, p_bc))
+        cov = np.zeros((6, 6))
+        if self._marginals is not None:
+            Pv, Pb = self._marginals
+            rate = 1.0 / max(float(np.median(np.diff(arr.stamps_ns[-20:]))) * 1e-9, 1e-4) if len(arr.stamps_ns) > 2 else 200.0
+            Pw = Pb[3:, 3:] + np.eye(3) * self.noise.gyro_noise_density ** 2 * rate
+            cov[:3, :3] = R_cw @ Pv @ R_cw.T
+            cov[3:, 3:] = R_bc.T @ Pw @ R_bc
+        return v_c, R_bc.T @ w_b, cov
 
     def velocity(self) -> Optional[np.ndarray]:
         """World velocity (m/s) of the newest keyframe state, when visual-inertial."""

@@ -212,6 +212,17 @@ class WindowSmoother:
     def window_stamps(self) -> list[int]:
         return [self.stamps[i] for i in self.states]
 
+    def velocity_bias_covariance(self, stamp_ns: int) -> Optional[tuple[np.ndarray, np.ndarray]]:
+        """Marginal covariances of a state's velocity (3x3, world, (m/s)^2) and biases (6x6,
+        ``[acc, gyro]``); ``None`` when the graph is singular."""
+        import gtsam
+        _, vk, bk = _keys(self._index[int(stamp_ns)])
+        try:
+            m = gtsam.Marginals(self.graph(), self.values)
+            return np.array(m.marginalCovariance(vk)), np.array(m.marginalCovariance(bk))
+        except RuntimeError:
+            return None
+
     def pose_covariance(self, stamp_ns: int) -> Optional[np.ndarray]:
         """6x6 marginal covariance of a body pose (GTSAM order ``[rot, pos]``, body frame); ``None``
         when the graph is singular."""
