@@ -598,3 +598,16 @@ def test_slow_start_motion_starts_from_rest_with_consistent_derivatives():
     b = base.sample(np.array([1.25, 2.25]))
     assert np.allclose(late.p, b.p) and np.allclose(late.v, b.v) and np.allclose(late.w, b.w)
     assert m.duration == pytest.approx(base.duration + 0.75) if base.duration is not None else True
+
+
+def test_speed_factor_plays_the_same_route_faster(tmp_path):
+    """`vings sim --speed-factor`: the same poses reached F times sooner, speeds x F, accelerations
+    x F^2 (the IMU stays exact for the faster motion)."""
+    a = build_scene("street", seed=3, length_m=300.0, fps=10.0)
+    b = build_scene("street", seed=3, length_m=300.0, fps=10.0, speed_factor=2.5)
+    t = np.linspace(0.0, 4.0, 9)
+    sa, sb = a.motion.sample(2.5 * t), b.motion.sample(t)
+    assert np.allclose(sb.p, sa.p) and np.allclose(sb.R, sa.R)
+    assert np.allclose(sb.v, 2.5 * sa.v) and np.allclose(sb.a, 6.25 * sa.a) and np.allclose(sb.w, 2.5 * sa.w)
+    with pytest.raises(ConfigError, match="speed factor"):
+        generate("room", tmp_path / "c", frames=4, width=48, height=32, mcap=False, speed_factor=0.0)
