@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import logging
 import threading
+import time
 from dataclasses import replace
 from enum import Enum
 from typing import TYPE_CHECKING, Optional
@@ -40,6 +41,7 @@ if TYPE_CHECKING:                      # pragma: no cover
 
 log = logging.getLogger("vings.vio")
 
+MAX_EVENTS = 200
 #: kinds of :meth:`ImuBuffer.covers` refusals
 BEFORE, NOT_YET, GAP = "no IMU before", "IMU not there yet", "IMU gap"
 
@@ -175,6 +177,12 @@ class ViFusion:
             raise ConfigError("vio: no camera")
         return ViFusion(cfg, calib), "initialising"
 
+    def _event(self, text: str) -> None:
+        """Record a state change or refusal; the newest ``MAX_EVENTS`` are kept (a long drive
+        without acceleration refuses an alignment at every keyframe)."""
+        self.events.append(text)
+        del self.events[:-MAX_EVENTS]
+
     # --------------------------------------------------------------------------- inputs
 
     def add_imu(self, s: ImuSample) -> bool:
@@ -183,7 +191,7 @@ class ViFusion:
     def reset(self, why: str) -> None:
         """Back to initialising (a new map segment, an IMU gap): the smoother is dropped."""
         if self.state == ViState.VISUAL_INERTIAL:
-            self.events.append(f"visual-inertial -> initialising: {why}")
+            self._event(f"visual-inertial -> initialising: {why}")
             log.warning("vio: %s", self.events[-1])
         self.smoother = None
         self.state = ViState.INITIALISING
@@ -193,7 +201,6 @@ class ViFusion:
 
     def after_keyframe(self, fe: "Frontend") -> None:
         """Called by the front end after each accepted window BA of a new keyframe."""
-        import time
         t = time.perf_counter()
         try:
             if self.state == ViState.INITIALISING:
@@ -240,7 +247,7 @@ class ViFusion:
             self.alignments_refused += 1
             self.reason = f"initialising: alignment refused ({al.why})"
             if self._tried_at is None or kfs[-1] != self._tried_at:
-                self.events.append(f"alignment at keyframe {kfs[-1]} refused: {al.why}")
+                self._event(f"alignment at keyframe {kfs[-1]} refused: {al.why}")
             self._tried_at = kfs[-1]
             return
         self._apply_alignment(fe, al, kfs)
@@ -266,7 +273,7 @@ class ViFusion:
         self.reason = (f"visual-inertial since keyframe {kfs[-1]}: scale {al.scale:.4g}, gyro bias "
                        f"{np.round(al.bg, 4).tolist()} rad/s, scale std {100 * al.scale_std:.2f} %, alignment "
                        f"residual {al.residual_rms:.3g}")
-        self.events.append(f"initialised: {self.reason}")
+        self._event(f"initialised: {self.reason}")
         log.info("vio: %s", self.events[-1])
 
     def _body(self, fe: "Frontend", s: int) -> np.ndarray:
