@@ -135,8 +135,7 @@ class FrontendContext:
         if var is None:
             return d
         dd = d.numpy().reshape(self.h, self.w)
-        rel = np.sqrt(np.maximum(var.numpy(), 0)).reshape(self.h, self.w) / np.maximum(dd, 1e-12)
-        good = (rel < 0.3) & (dd > 0)
+        good = self.known_depth(d, var)
         if good.all():
             return d
         if good.sum() < 10:
@@ -146,6 +145,15 @@ class FrontendContext:
         den = cv2.GaussianBlur(c, (0, 0), 3.0)
         fill = np.where(den > 1e-3, num / np.maximum(den, 1e-6), float(np.median(dd[good])))
         return torch.from_numpy(np.where(good, dd, fill).reshape(-1).astype(np.float64))
+
+    def known_depth(self, d: torch.Tensor, var: Optional[torch.Tensor]) -> np.ndarray:
+        """``(h, w)`` bool: grid points whose inverse depth ``d`` is known, i.e. positive with a
+        relative std (from the variance ``var``) below 0.3; every positive one without ``var``."""
+        dd = d.numpy().reshape(self.h, self.w)
+        if var is None:
+            return dd > 0
+        std = np.sqrt(np.maximum(var.numpy(), 0)).reshape(self.h, self.w)
+        return (dd > 0) & (std < 0.3 * np.maximum(dd, 1e-12))
 
     def induced_init(self, T_i: torch.Tensor, d_i: torch.Tensor, T_j: torch.Tensor) -> np.ndarray:
         """Dense flow ``(H, W, 2)`` from camera ``i`` (pose ``T_i``, grid inverse depth ``d_i``) to

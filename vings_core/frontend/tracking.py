@@ -149,7 +149,7 @@ class MotionTracker:
 
     def track_seeded(self, kf: WindowKeyframe, gray: np.ndarray, tex: np.ndarray) -> Optional[Track]:
         """Tracking for motions the dense flow cannot follow: sparse feature matches ``kf`` -> frame,
-        PnP on the keyframe's depths (grid points whose relative inverse-depth std is below 0.3),
+        PnP on the keyframe's known depths (:meth:`FrontendContext.known_depth`),
         then the dense flow around the flow that pose induces and motion-only BA from it. ``None``
         when seeding is off or no pose is found (the result still has to pass :meth:`check`)."""
         ctx, cfg = self.ctx, self.ctx.cfg
@@ -158,12 +158,7 @@ class MotionTracker:
             return None
         t = time.perf_counter()
         d = kf.d.numpy().reshape(ctx.h, ctx.w)
-        if kf.var is None:
-            valid = d > 0
-        else:
-            std = np.sqrt(np.maximum(kf.var.numpy(), 0)).reshape(ctx.h, ctx.w)
-            valid = (d > 0) & (std < 0.3 * np.maximum(d, 1e-12))
-        seed = pnp_seed(m, d, valid, ctx.Kmat, kf.T_cw.numpy(), STRIDE, cfg.seed_min_inliers,
+        seed = pnp_seed(m, d, ctx.known_depth(kf.d, kf.var), ctx.Kmat, kf.T_cw.numpy(), STRIDE, cfg.seed_min_inliers,
                         cfg.seed_ransac_px)
         ctx.stats["t_seed"] += time.perf_counter() - t
         if seed is None:

@@ -30,10 +30,11 @@ import numpy as np
 
 from ..errors import ConfigError
 from ..geometry import sim3_apply_to_pose
+from ..mapping.history import scale_keyframe_depth
 from ..types import Calibration, ImuSample, Keyframe
 from .align import Alignment, align, excitation
 from .config import ViConfig
-from .preint import ImuArrays, ImuNoiseConfig, gtsam_params, gtsam_preintegrate, preintegrate
+from .preint import ImuArrays, ImuNoiseConfig, gtsam_params, gtsam_preintegrate, predict, preintegrate
 from .smoother import NavEstimate, WindowSmoother
 
 if TYPE_CHECKING:                      # pragma: no cover
@@ -122,9 +123,18 @@ def scale_keyframe(kf: Keyframe, C: np.ndarray) -> Keyframe:
     :func:`~vings_core.geometry.sim3_apply_to_pose`, depth times ``s``, inverse-depth variance
     divided by ``s^2``."""
     import torch
-    s = float(np.cbrt(np.linalg.det(C[:3, :3])))
     T = sim3_apply_to_pose(C, kf.T_wc.detach().cpu().numpy().astype(np.float64))
-    return replace(kf, T_wc=torch.from_numpy(T), depth=kf.depth * s, inv_depth_var=kf.inv_depth_var / (s * s))
+    out = replace(kf, T_wc=torch.from_numpy(T))
+    scale_keyframe_depth(out, float(np.cbrt(np.linalg.det(C[:3, :3]))))
+    return out
+
+
+def _gtsam_system(ps, weight: float) -> tuple:
+    """A :class:`~vings_core.frontend.ba.PoseSystem` as the smoother takes it: ``(G, g, stamps,
+    T_wc_lin)`` in GTSAM's ordering, the information times ``weight``."""
+    G, g = ps.to_gtsam_ordering()
+    return (weight * G.numpy(), weight * g.numpy(), list(ps.stamps_ns),
+            [np.linalg.inv(T) for T in ps.T_cw.numpy()])
 
 
 class ViFusion:
@@ -210,9 +220,6 @@ class ViFusion:
         finally:
             self.t_fusion += time.perf_counter() - t
 
-    def _segment_keyframes(self, fe: "Frontend") -> list[int]:
-        return fe.buffer.keyframes_of_segment(fe.init.segment.index)
-
     def _preints(self, stamps: list[int]) -> Optional[list]:
         for a, b in zip(stamps[:-1], stamps[1:]):
             why = self.imu.covers(a, b, self.cfg.max_imu_gap_s)
@@ -224,7 +231,7 @@ class ViFusion:
 
     def _try_initialise(self, fe: "Frontend") -> None:
         c = self.cfg
-        kfs = self._segment_keyframes(fe)[-c.init_max_keyframes:]
+        kfs = fe.buffer.keyframes_of_segment(fe.init.segment.index)[-c.init_max_keyframes:]
         if len(kfs) < c.init_min_keyframes or (kfs[-1] - kfs[0]) * 1e-9 < c.init_min_span_s:
             self.reason = (f"initialising: {len(kfs)} keyframe(s) over {(kfs[-1] - kfs[0]) * 1e-9 if kfs else 0:.2f} s "
                            f"(need {c.init_min_keyframes} over {c.init_min_span_s:g} s)")
@@ -312,11 +319,8 @@ class ViFusion:
 
     def _visual_and_optimise(self, fe: "Frontend") -> None:
         c, sm = self.cfg, self.smoother
-        ps = fe.pose_system
-        if ps is not None:
-            G, g = ps.to_gtsam_ordering()
-            T_wc = [np.linalg.inv(T) for T in ps.T_cw.numpy()]
-            sm.set_visual(G.numpy(), g.numpy(), list(ps.stamps_ns), T_wc, c.visual_weight)
+        if fe.pose_system is not None:
+            sm.set_visual(*_gtsam_system(fe.pose_system, c.visual_weight))
         sm.optimize(c.smoother_iters)
         self._marginals = sm.velocity_bias_covariance(sm.window_stamps()[-1])
         win = {k.stamp for k in fe.window}
@@ -327,11 +331,7 @@ class ViFusion:
         while sm.window_stamps() and sm.window_stamps()[0] not in win:
             old = sm.window_stamps()[0]
             inc = leaving.get(old)
-            if inc is not None:
-                Gi, gi = inc.to_gtsam_ordering()
-                inc = (Gi.numpy() * c.visual_weight, gi.numpy() * c.visual_weight, list(inc.stamps_ns),
-                       [np.linalg.inv(T) for T in inc.T_cw.numpy()])
-            sm.marginalize_oldest(inc)
+            sm.marginalize_oldest(None if inc is None else _gtsam_system(inc, c.visual_weight))
 
     def _smooth(self, fe: "Frontend") -> None:
         sm = self.smoother
@@ -367,7 +367,8 @@ class ViFusion:
         v_w = est.v
         if stamp_ns > est.stamp_ns:
             pre = preintegrate(arr, est.stamp_ns, stamp_ns, est.bg, est.ba)
-            v_w = est.v + np.array([0.0, 0.0, -self.noise.gravity]) * pre.dt + est.T_wb[:3, :3] @ pre.dv
+            _, _, v_w = predict(pre, est.T_wb[:3, :3], est.T_wb[:3, 3], est.v,
+                                np.array([0.0, 0.0, -self.noise.gravity]))
         k = int(np.searchsorted(arr.stamps_ns, stamp_ns, side="right")) - 1
         w_b = arr.gyro[max(k, 0)] - est.bg
         R_bc, p_bc = self.T_bc[:3, :3], self.T_bc[:3, 3]
@@ -383,12 +384,6 @@ class ViFusion:
             cov[:3, :3] = R_cw @ Pv @ R_cw.T
             cov[3:, 3:] = R_bc.T @ Pw @ R_bc
         return v_c, R_bc.T @ w_b, cov
-
-    def velocity(self) -> Optional[np.ndarray]:
-        """World velocity (m/s) of the newest keyframe state, when visual-inertial."""
-        if self.smoother is None or not self.smoother.states:
-            return None
-        return self.smoother.latest().v
 
     def status(self) -> dict:
         out = {"vi_state": self.state.value, "vi_reason": self.reason,

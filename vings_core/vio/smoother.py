@@ -117,21 +117,21 @@ class WindowSmoother:
         return k
 
     def set_visual(self, G_cam: np.ndarray, g_cam: np.ndarray, stamps: Sequence[int],
-                   T_wc_lin: Sequence[np.ndarray], weight: float = 1.0) -> None:
+                   T_wc_lin: Sequence[np.ndarray]) -> None:
         """Replace the visual factor by the window BA's pose system over keyframes ``stamps`` (GTSAM
         order, see :meth:`~vings_core.frontend.ba.PoseSystem.to_gtsam_ordering`), linearised at the
         camera poses ``T_wc_lin``. Keyframes without a state are left out (their rows and columns
         are dropped, i.e. their poses held at the linearisation point)."""
-        self.visual = self._visual_factor(G_cam, g_cam, stamps, T_wc_lin, weight)
+        self.visual = self._visual_factor(G_cam, g_cam, stamps, T_wc_lin)
 
-    def _visual_factor(self, G, g, stamps, T_wc_lin, weight) -> Optional[_Tracked]:
+    def _visual_factor(self, G, g, stamps, T_wc_lin) -> Optional[_Tracked]:
         keep = [n for n, s in enumerate(stamps) if int(s) in self._index]
         if len(keep) < 2:
             return None
         idx = np.concatenate([np.arange(6 * n, 6 * n + 6) for n in keep])
         states = tuple(self._index[int(stamps[n])] for n in keep)
         T_cb = np.linalg.inv(self.T_bc)
-        f = visual_factor(weight * G[np.ix_(idx, idx)], weight * g[idx], self.T_bc,
+        f = visual_factor(G[np.ix_(idx, idx)], g[idx], self.T_bc,
                           [_keys(i)[0] for i in states], [T_wc_lin[n] @ T_cb for n in keep])
         return _Tracked(f, states)
 
@@ -164,7 +164,7 @@ class WindowSmoother:
         old = self.states[0]
         touching = [t for t in self.priors + self.imu if old in t.states]
         if incident is not None:
-            f = self._visual_factor(*incident, 1.0)
+            f = self._visual_factor(*incident)
             if f is not None and old in f.states:
                 touching.append(f)
         nl = gtsam.NonlinearFactorGraph()
@@ -178,10 +178,10 @@ class WindowSmoother:
         others = sorted({s for t in touching for s in t.states} - {old})
         keep_vals = gtsam.Values()
         for s in others:
-            for k in _keys(s):
-                keep_vals.insert(k, self.values.atPose3(k) if k == _keys(s)[0] else
-                                 self.values.atVector(k) if k == _keys(s)[1] else
-                                 self.values.atConstantBias(k))
+            x, vk, b = _keys(s)
+            keep_vals.insert(x, self.values.atPose3(x))
+            keep_vals.insert(vk, self.values.atVector(vk))
+            keep_vals.insert(b, self.values.atConstantBias(b))
         new_priors = []
         for n in range(rest.size()):
             fac = rest.at(n)
@@ -220,15 +220,5 @@ class WindowSmoother:
         try:
             m = gtsam.Marginals(self.graph(), self.values)
             return np.array(m.marginalCovariance(vk)), np.array(m.marginalCovariance(bk))
-        except RuntimeError:
-            return None
-
-    def pose_covariance(self, stamp_ns: int) -> Optional[np.ndarray]:
-        """6x6 marginal covariance of a body pose (GTSAM order ``[rot, pos]``, body frame); ``None``
-        when the graph is singular."""
-        import gtsam
-        try:
-            return np.array(gtsam.Marginals(self.graph(), self.values).marginalCovariance(
-                _keys(self._index[int(stamp_ns)])[0]))
         except RuntimeError:
             return None
