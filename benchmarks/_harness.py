@@ -70,7 +70,7 @@ def run_experiments(steps: Iterable[tuple[str, Callable[[], Any]]], out: dict,
             if finish is not None:
                 finish(out)
         finally:
-            print(json.dumps(to_json(out)), flush=True)
+            print(json.dumps(to_json(out), default=str), flush=True)
             signal.signal(signal.SIGTERM, old)
     return 1 if failed else 0
 

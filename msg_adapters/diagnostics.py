@@ -19,7 +19,7 @@ LEVELS = {"ok": DiagnosticStatus.OK, "warn": DiagnosticStatus.WARN,
 _LEVEL_NAMES = {v: k for k, v in LEVELS.items()}
 
 #: diagnostic level of each front-end tracking state
-TRACKING_STATE_LEVEL = {"waiting": "warn", "tracking": "ok", "lost": "error"}
+TRACKING_STATE_LEVEL = {"waiting": "warn", "tracking": "ok", "lost": "error", "inertial": "warn"}
 
 
 def _fmt(v: Any) -> str:

@@ -611,3 +611,28 @@ def test_speed_factor_plays_the_same_route_faster(tmp_path):
     assert np.allclose(sb.v, 2.5 * sa.v) and np.allclose(sb.a, 6.25 * sa.a) and np.allclose(sb.w, 2.5 * sa.w)
     with pytest.raises(ConfigError, match="speed factor"):
         generate("room", tmp_path / "c", frames=4, width=48, height=32, mcap=False, speed_factor=0.0)
+
+
+def test_imu_stream_options_thin_shift_drop_and_gap_the_recorded_readings(tmp_path):
+    from vings_core.sim.sequence import ImuStreamOptions
+    full = generate("room", tmp_path / "full", frames=21, width=48, height=32, mcap=False)
+    opts = ImuStreamOptions(rate_hz=100.0, td_s=0.015, drop=0.05, gaps=((0.4, 0.6),))
+    d = generate("room", tmp_path / "thin", frames=21, width=48, height=32, mcap=False, imu=opts)
+    a = np.loadtxt(full / "mav0" / "imu0" / "data.csv", delimiter=",", comments="#")
+    b = np.loadtxt(d / "mav0" / "imu0" / "data.csv", delimiter=",", comments="#")
+    t0 = a[0, 0]
+    tb = (b[:, 0] - t0) * 1e-9 - 0.015                         # true time of each reading
+    k = np.round(tb / 0.005).astype(int)
+    assert np.allclose(tb, k * 0.005, atol=1e-6)                # stamped t + td (CSV floats)
+    assert np.all(k % 2 == 0)                                   # 100 Hz: every other 200 Hz reading
+    assert not np.any((tb >= 0.4) & (tb < 0.6))                 # the gap
+    n_kept = np.sum((np.arange(len(a)) % 2 == 0) & ~(((a[:, 0] - t0) * 1e-9 >= 0.4) & ((a[:, 0] - t0) * 1e-9 < 0.6)))
+    assert 0.8 * n_kept < len(b) < n_kept                       # about 5 % dropped
+    assert np.allclose(b[:, 1:], a[k, 1:])                      # the same readings, only fewer
+    # the ground truth keeps every 200 Hz sample on the true clock
+    ga = np.loadtxt(full / "mav0" / "state_groundtruth_estimate0" / "data.csv", delimiter=",", comments="#")
+    gb = np.loadtxt(d / "mav0" / "state_groundtruth_estimate0" / "data.csv", delimiter=",", comments="#")
+    assert np.array_equal(ga[:, 0], gb[:, 0])
+    with pytest.raises(ConfigError, match="divide"):
+        generate("room", tmp_path / "bad", frames=4, width=48, height=32, mcap=False,
+                 imu=ImuStreamOptions(rate_hz=70.0))

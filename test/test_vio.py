@@ -214,7 +214,10 @@ def test_imu_buffer_refuses_and_counts_bad_readings():
     assert buf.refused == {"out_of_order": 1, "duplicate": 1, "non_finite": 1}
     for t in range(105_000_000, 400_000_000, 5_000_000):
         buf.add(ok(t))
-    assert buf.arrays().stamps_ns[0] == 95_000_000          # camera clock: t_imu - td
+    # camera clock t_imu - td, centred holds: back by half the 5 ms period
+    assert buf.arrays().stamps_ns[0] == 95_000_000 - 2_500_000
+    buf.td_ns = 15_000_000                                   # a new offset re-reads every stamp
+    assert buf.arrays().stamps_ns[0] == 85_000_000 - 2_500_000
     assert buf.covers(100_000_000, 300_000_000, 0.1) is None
     assert buf.covers(10_000_000, 300_000_000, 0.1).startswith("no IMU before")
     assert buf.covers(300_000_000, 600_000_000, 0.1).startswith("IMU not there yet")
@@ -256,3 +259,86 @@ def test_a_keyframe_packet_moves_into_the_metric_frame_with_its_depth():
     p_new = out.T_wc.numpy()[:3, :3] @ np.array([0, 0, float(out.depth[0, 0])]) + out.T_wc.numpy()[:3, 3]
     assert np.allclose(p_new, C[:3, :3] @ p_old + C[:3, 3])
     assert float(out.inv_depth_var[0, 0]) == pytest.approx(0.04 / 9.0)
+
+
+# ------------------------------------------------------------------ standstill, units, offset
+
+def _still_stream(acc_mean, vib=1.0, seconds=2.0, rate=200.0, seed=0, gyro_bias=(0.0, 0.02, 0.08)):
+    """A platform at rest with rotor vibration: per-reading noise of ``vib`` m/s^2 around the mean."""
+    rng = np.random.default_rng(seed)
+    n = int(seconds * rate)
+    t = (np.arange(n) / rate * 1e9).astype(np.int64)
+    acc = np.asarray(acc_mean, float) + rng.normal(0, vib, (n, 3))
+    gyro = np.asarray(gyro_bias, float) + rng.normal(0, 0.02, (n, 3))
+    return ImuArrays(t, gyro, acc)
+
+
+def test_standstill_test_accepts_a_vibrating_platform_and_refuses_motion():
+    from vings_core.vio.standstill import attitude_from_gravity, imu_still
+    R_true = gtsam.Rot3.Ypr(0.3, 0.4, -0.2).matrix()          # R_wb
+    a_rest = R_true.T @ np.array([0, 0, 9.81])
+    imu = _still_stream(a_rest)
+    test = imu_still(imu, int(1.9e9), 1.0, 0.25, 0.02, 0.2)
+    assert test is not None and test.still, test
+    quiet = imu_still(_still_stream(a_rest, vib=0.2), int(1.9e9), 1.0, 0.25, 0.02, 0.2)
+    R = attitude_from_gravity(quiet.acc_mean)
+    z = np.array([0, 0, 1.0])
+    # roll and pitch: the body's up direction agrees with the truth (to the readings' noise)
+    assert np.degrees(np.arccos(np.clip((R.T @ z) @ (R_true.T @ z), -1, 1))) < 0.5
+    assert np.allclose(R @ R.T, np.eye(3), atol=1e-12) and np.linalg.det(R) > 0
+    # too short a window: no verdict
+    assert imu_still(imu, int(0.3e9), 1.0, 0.25, 0.02, 0.2) is None
+    # a push of 0.5 m/s^2 for 0.25 s, or a slow turn of 0.1 rad/s, is motion
+    pushed = ImuArrays(imu.stamps_ns, imu.gyro, imu.accel.copy())
+    pushed.accel[330:380] += [0.5, 0, 0]                    # within the newest block
+    assert not imu_still(pushed, int(1.9e9), 1.0, 0.25, 0.02, 0.2).still
+    turned = ImuArrays(imu.stamps_ns, imu.gyro.copy(), imu.accel)
+    turned.gyro[330:380] += [0, 0, 0.1]
+    assert not imu_still(turned, int(1.9e9), 1.0, 0.25, 0.02, 0.2).still
+
+
+def test_units_at_rest_are_checked():
+    from vings_core.vio.standstill import units_problem
+    assert units_problem(9.80, 9.81) is None
+    assert "in g" in units_problem(1.0, 9.81)
+    assert "gravity was removed" in units_problem(0.05, 9.81)
+    assert "not 9.81" in units_problem(7.0, 9.81)
+
+
+def test_fusion_refuses_an_imu_in_g_at_standstill_and_stops_taking_readings():
+    from vings_core.types import Calibration, CameraModel
+    from vings_core.vio.config import ViConfig, ViState
+    from vings_core.vio.fusion import ViFusion
+    cal = Calibration(CameraModel(376, 240, 200.0, 200.0, 188.0, 120.0), T_bc=np.eye(4),
+                      gyro_noise_density=1.7e-4, gyro_random_walk=2e-5, accel_noise_density=2e-3,
+                      accel_random_walk=3e-3, gravity=9.81, T_bc_known=True)
+    vio = ViFusion(ViConfig(), cal)
+    imu = _still_stream([0.0, 0.0, 1.0], vib=0.01)          # in g
+    for t, g, a in zip(imu.stamps_ns, imu.gyro, imu.accel):
+        vio.add_imu(ImuSample(int(t), g, a))
+    assert vio.standstill(int(1.9e9)) is None
+    assert vio.state == ViState.VISUAL_ONLY and "in g" in vio.units_error
+    assert vio.status()["vi_error"] == vio.units_error
+    assert not vio.add_imu(ImuSample(int(2e9), np.zeros(3), np.array([0, 0, 1.0])))
+
+
+def test_time_offset_estimate_recovers_a_known_offset(motion):
+    from vings_core.sim.imu import ImuNoise
+    from vings_core.vio.preint import centred
+    from vings_core.vio.time_offset import estimate_td
+    m, _, T_bc = motion
+    t = np.arange(0, 6, 0.005)
+    d = simulate_imu(m, t, ImuNoise(), np.random.default_rng(3))
+    cam = np.arange(0.5, 5.5, 0.05)
+    R_wb = m.sample(cam).R
+    for td in (0.015, -0.008):
+        # the reading taken at true time t is stamped t + td (t_imu = t_cam + td)
+        imu = centred(ImuArrays(((t + td) * 1e9).round().astype(np.int64), d.gyro, d.accel))
+        e = estimate_td(imu, (cam * 1e9).round().astype(np.int64), list(R_wb))
+        assert e.ok, e.why
+        assert abs(e.delta_s - td) < 3e-4, (td, e.delta_s)
+        assert np.abs(e.gyro_bias - d.bias_gyro[0]).max() < 1e-3
+    # no rotation: refused, not guessed
+    still = [np.eye(3)] * len(cam)
+    e = estimate_td(imu, (cam * 1e9).round().astype(np.int64), still)
+    assert not e.ok and "not observable" in e.why

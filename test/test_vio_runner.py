@@ -113,3 +113,70 @@ def test_vings_run_fuses_the_imu_and_the_map_follows_the_alignment(room, tmp_pat
     assert m0["vi_state"] == "visual-only" and m0["scale_observable"] is False
     assert m0["vi_initialised_at_s"] is None and m0["gyro_bias"] is None
     assert m["psnr_keyframes_db"] > m0["psnr_keyframes_db"] - 1.5
+
+
+def _run(path, opts=None):
+    from vings_core.frontend import Frontend, FrontendConfig
+    from vings_core.io import open_source
+    from vings_core.types import Frame
+    from vings_core.vio.config import ViConfig
+    from vings_core.vio.fusion import ViFusion
+    src = open_source(path, opts) if opts is not None else open_source(path)
+    vio, why = ViFusion.for_source(ViConfig(), src.calibration, True)
+    assert vio is not None, why
+    fe = Frontend(FrontendConfig(), src.calibration.camera, vio=vio)
+    modes = []
+    for item in src.stream():
+        if isinstance(item, Frame):
+            fe.process(item)
+            fe.pop_keyframes()
+            modes.append(vio.status()["vi_state"])
+        else:
+            fe.add_imu(item)
+    fe.finish()
+    return src, fe, vio, modes
+
+
+def test_a_vision_outage_is_bridged_by_the_imu_in_the_same_world_frame(tmp_path):
+    from vings_core.sim import generate
+    from vings_core.types import POSED_STATES, TrackState
+    d = generate("room", tmp_path / "blind", frames=90, width=376, height=240, seed=1, mcap=False,
+                 blind=(3.5, 4.0))
+    src, fe, vio, modes = _run(d)
+    states = fe.frame_states()
+    blind = [s for s in states if 3.5 <= (s - src.frame_stamps()[0]) * 1e-9 < 4.0 - 1e-6]
+    assert len(blind) == 10
+    assert all(states[s] == TrackState.INERTIAL for s in blind)        # posed by the IMU alone
+    assert modes.count("imu-only") == 10
+    assert len(fe.segments()) == 1                                     # same world frame
+    assert all(v in POSED_STATES for v in states.values())
+    assert any("IMU-propagated" in e for e in fe.events)
+    # the IMU-only poses stay near the truth (the whole run aligned with SE(3): metric frame)
+    gt = src.gt_camera_trajectory()
+    e, g = associate(fe.trajectory(states=POSED_STATES), gt, max_dt_ns=5_000_000)
+    from vings_core.eval.align import umeyama
+    _, R, t = umeyama(e.poses[:, :3, 3], g.poses[:, :3, 3], with_scale=False)
+    err = np.linalg.norm((R @ e.poses[:, :3, 3].T).T + t - g.poses[:, :3, 3], axis=1)
+    in_blind = np.isin(e.stamps_ns, blind)
+    assert err[in_blind].max() < 0.05, err[in_blind].max()
+    # the odometry covariance says the pose came from the IMU: it grows through the outage
+    covs = [fe.buffer._records[s].covariance for s in blind]
+    assert all(c is not None for c in covs)
+    assert np.trace(covs[-1][:3, :3]) > np.trace(covs[0][:3, :3])
+
+
+def test_standstill_on_real_euroc_poses_every_frame_gravity_aligned_without_scale():
+    from pathlib import Path
+    from vings_core.io import SourceOptions
+    from vings_core.types import POSED_STATES
+    d = Path(__file__).resolve().parents[2] / "shared" / "data" / "euroc_v101_micro"
+    if not d.exists():
+        pytest.skip(f"{d} not here")
+    src, fe, vio, modes = _run(d, SourceOptions(width=376, height=240))
+    traj = fe.trajectory(states=POSED_STATES)
+    assert len(traj) == len(src.frame_stamps()) == 95                 # every frame posed
+    assert modes.count("standstill") >= 80
+    assert vio.initialised_at_ns is None                                # no scale claimed
+    p = traj.poses[:, :3, 3]
+    assert np.linalg.norm(p - p[0], axis=1).max() < 0.01                # zero velocity
+    assert _gravity_err_deg(traj, src.gt_camera_trajectory()) < 1.0

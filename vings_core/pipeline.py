@@ -41,7 +41,7 @@ from .keyframe_queue import KeyframeQueue
 from .profiling import timed, timed_iter
 from .stages import MAPPER_SOURCE
 from .stages import map_keyframe
-from .types import Frame, Keyframe, TrackState, Trajectory
+from .types import POSED_STATES, Frame, Keyframe, TrackState, Trajectory
 from .util import nice_current_thread
 
 log = logging.getLogger("vings.run")
@@ -575,7 +575,7 @@ class SlamRunner:
             return Trajectory.from_poses(self._gt_poses)
         if segment == -1:
             segment = self.main_segment()
-        return self.frontend.trajectory(states=(TrackState.TRACKING,),
+        return self.frontend.trajectory(states=POSED_STATES,
                                         segments=None if segment is None else {segment})
 
     def _segment_records(self, gt: Optional[Trajectory]) -> tuple[list[dict], dict[int, Trajectory]]:

@@ -306,6 +306,9 @@ class TrackState(str, enum.Enum):
     * ``WAITING``: no map segment yet; waiting for enough parallax to initialise one.
     * ``TRACKING``: the frame was posed against the keyframe window.
     * ``LOST``: tracking failed; the pose is the last good one.
+    * ``INERTIAL``: posed from the IMU alone (visual-inertial front end): propagated through a
+      vision outage, or held at a standstill before the visual initialisation (a frame state; the
+      front end's own state is then ``LOST`` or ``WAITING``).
 
     A ``str`` subclass: a member equals, hashes and prints (``str``, f-strings, ``%s``,
     ``json.dumps``) as its value, so ``TrackState.TRACKING == "tracking"``.
@@ -314,12 +317,17 @@ class TrackState(str, enum.Enum):
     WAITING = "waiting"
     TRACKING = "tracking"
     LOST = "lost"
+    INERTIAL = "inertial"
 
     def __str__(self) -> str:
         return self.value
 
     def __format__(self, spec: str) -> str:
         return format(self.value, spec)
+
+
+#: frame states that carry a pose estimate (published as odometry, written to trajectory.tum)
+POSED_STATES = (TrackState.TRACKING, TrackState.INERTIAL)
 
 
 @dataclass

@@ -32,7 +32,7 @@ from vings_core.io.calib_yaml import is_rectified_topic, load_calibration_yaml
 from vings_core.io.undistort import Undistorter
 from vings_core.exchange import ExchangeConfig, PoseKeeper
 from vings_core.exchange.config import KEEPER
-from vings_core.types import Calibration, CameraModel, Frame, TrackState
+from vings_core.types import POSED_STATES, Calibration, CameraModel, Frame, TrackState
 from vings_core.vio.config import ViConfig
 from vings_core.vio.fusion import ViFusion
 
@@ -226,7 +226,7 @@ class FrontendNode(StageNode):
         if sims:       # the metric alignment: the mapper scales its Gaussians with it
             self.keeper.own_similarity(sims)
         for est in ests:
-            if est.state is TrackState.TRACKING:
+            if est.state in POSED_STATES:
                 # a back-filled pose (a frame that waited for initialisation) is published late,
                 # in stamp order, before the current frame's; /diagnostics counts them
                 self.late_poses += int(est.stamp_ns != stamp)
@@ -266,7 +266,7 @@ class FrontendNode(StageNode):
             self._exchange_keyframe_sent(kf)
 
     def _publish_path(self) -> None:
-        traj = self.frontend.trajectory(states=(TrackState.TRACKING,), max_poses=self.settings.path_max_poses)
+        traj = self.frontend.trajectory(states=POSED_STATES, max_poses=self.settings.path_max_poses)
         if len(traj) == 0:
             return
         self.pub_path.publish(trajectory_to_path(traj, self.ros.world_frame))

@@ -39,6 +39,7 @@ from .pose_buffer import PoseBuffer
 from .tracking import MotionTracker, Track, tangent_covariance
 from .window import KeyframeWindow, WindowKeyframe
 from ..profiling import profiled
+from ..vio.config import ViState
 
 if TYPE_CHECKING:                       # pragma: no cover
     from ..vio.fusion import ViFusion
@@ -100,6 +101,8 @@ class Frontend:
         self.state = TrackState.WAITING
         self._fails = 0                                # lost frames in a row
         self._last_stamp: Optional[int] = None
+        self._last_visual: Optional[int] = None         # the last frame posed by the images
+        self._still_T_wc: Optional[np.ndarray] = None   # standstill pose before initialisation
         # the camera grid (read-only) and the shared counters, as attributes of the front end
         ctx = self.ctx
         self.camera, self.W, self.H, self.K, self.Kmat = ctx.camera, ctx.W, ctx.H, ctx.K, ctx.Kmat
@@ -185,11 +188,15 @@ class Frontend:
         self._check_frame(frame)
         gray = frame.gray()
         self.stats["frames"] += 1
+        if self.vio is not None:
+            self.vio.frame_mode = None
         with _torch_threads(self.cfg.num_threads):
             if self.state == TrackState.WAITING:
                 out = self._step_waiting(frame, gray)
             else:
                 out = self._step_tracking(frame, gray)
+        if out and out[-1].state == TrackState.TRACKING:
+            self._last_visual = frame.stamp_ns
         self._last_stamp = frame.stamp_ns
         self.stats["t_total"] += time.perf_counter() - t0
         return out
@@ -335,17 +342,58 @@ class Frontend:
     def _step_waiting(self, frame: Frame, gray: np.ndarray) -> list[PoseEstimate]:
         done = self.init.step(frame, gray)
         if done is None:
+            still = self._standstill_before_init(frame.stamp_ns)
+            if still is not None:
+                return still
             return [self.buffer.record(frame.stamp_ns, None, self.init.segment.T_cw.copy(),
                                        TrackState.WAITING)]
         self.motion.start(done.prev, done.last, done.chain)
         self.state = TrackState.TRACKING
         return done.estimates
 
+    def _standstill_before_init(self, stamp: int) -> Optional[list[PoseEstimate]]:
+        """Before the first visual initialisation, while neither the images (no flow above
+        ``still_flow_lr_px`` since the first frame) nor the IMU (:meth:`ViFusion.standstill`) show
+        motion, frames are posed at zero velocity: the body at the origin with roll and pitch from
+        the accelerometer (yaw 0, world z up), frame state ``INERTIAL``. The first such frame also
+        poses the frames that waited before it and anchors the segment there, so a later visual
+        initialisation continues in this gravity-aligned frame (at its own scale until the metric
+        alignment). ``None`` when not at a standstill."""
+        vio = self.vio
+        if (vio is None or self.ctx.motion_detected or self.init.segment.index != 0
+                or self.buffer.keyframes_of_segment(0)):
+            return None
+        R_wb = vio.standstill(stamp)
+        if R_wb is None:
+            return None
+        vio.frame_mode = ViState.STANDSTILL
+        out = []
+        if self._still_T_wc is None:
+            T_wb = np.eye(4)
+            T_wb[:3, :3] = R_wb
+            self._still_T_wc = T_wb @ vio.T_bc
+            self.init.segment.T_cw = np.linalg.inv(self._still_T_wc)
+            waiting = [s for s, st in self.buffer.frame_states().items() if st == TrackState.WAITING]
+            out = [self.buffer.record(s, None, self.init.segment.T_cw.copy(), TrackState.INERTIAL)
+                   for s in waiting]
+            self.events.append(f"standstill from frame {waiting[0] if waiting else stamp}: posed at zero "
+                               f"velocity, roll and pitch from the accelerometer")
+        self.reason = "waiting for motion: standstill (IMU and images still), posed at zero velocity"
+        out.append(self.buffer.record(stamp, None, self.init.segment.T_cw.copy(), TrackState.INERTIAL))
+        return out
+
     def _step_tracking(self, frame: Frame, gray: np.ndarray) -> list[PoseEstimate]:
         stamp = frame.stamp_ns
         tex = self.ctx.texture(gray)
-        T_pred = self.motion.predict(stamp, self.window[-1].T_cw)
-        track = self.motion.track_against(self.window[-1], gray, T_pred, tex)
+        imu = (self.vio.propagate(stamp, self._last_visual)
+               if self.vio is not None and self.state == TrackState.LOST and self._last_visual else None)
+        if imu is not None:
+            # re-acquisition after a vision outage: from the IMU-propagated pose
+            T_pred = torch.from_numpy(np.linalg.inv(imu[0]))
+            track = self.motion.track_against(self.window[-1], gray, T_pred, tex, use_chain=False)
+        else:
+            T_pred = self.motion.predict(stamp, self.window[-1].T_cw)
+            track = self.motion.track_against(self.window[-1], gray, T_pred, tex)
         why = self.motion.check(track.fwd, track.motion)
         if why is not None or not track.motion.rms_px <= self.cfg.seed_above_rms_px:
             # failed or doubtful: the motion may be beyond the dense flow's reach; seed it from
@@ -354,16 +402,19 @@ class Frontend:
             if (seeded is not None and self.motion.check(seeded.fwd, seeded.motion) is None
                     and (why is not None or seeded.motion.rms_px < track.motion.rms_px)):
                 track, why = seeded, None
+        if why is None and imu is not None:
+            why = self._imu_disagrees(track, imu)
         if why is not None and self.state == TrackState.LOST:
             found = self._relocalise(gray, tex)
-            if found is not None:
+            if found is not None and (imu is None or self._imu_disagrees(found, imu) is None):
                 track, why = found, None
         if why is not None:
             return [self._fail(stamp, why)]
         if self.state == TrackState.LOST:
             self.stats["relocalisations"] += 1
             self.events.append(f"relocalised at frame {stamp} against keyframe {track.kf.stamp} after "
-                               f"{self._fails} lost frames")
+                               f"{self._fails} lost frames"
+                               + (" (IMU-propagated)" if imu is not None else ""))
             self.reason = self.events[-1]
         self.state = TrackState.TRACKING
         self._fails = 0
@@ -379,7 +430,29 @@ class Frontend:
                     return [est]
         if not self.reason.startswith("relocalised"):
             self.reason = f"tracking: mean flow to keyframe {mean_lr:.2f} px at 1/8 resolution"
-        return [self.buffer.record(stamp, track.kf.stamp, T_cw.numpy(), TrackState.TRACKING, cov=cov)]
+        T = T_cw.numpy()
+        prev = self.motion.prev
+        if (self.vio is not None and prev is not None and prev.stamp == self._last_stamp
+                and mean_lr < self.cfg.still_flow_lr_px
+                and self.vio.standstill(stamp) is not None):
+            # standstill (IMU and images still): zero velocity, the previous frame's pose
+            self.vio.frame_mode = ViState.STANDSTILL
+            T = self.buffer.T_cw(self._last_stamp)
+        return [self.buffer.record(stamp, track.kf.stamp, T, TrackState.TRACKING, cov=cov)]
+
+    def _imu_disagrees(self, track: Track, imu: tuple[np.ndarray, np.ndarray]) -> Optional[str]:
+        """Why a re-acquisition after a vision outage is refused: its position is further from the
+        IMU-propagated one than ``vio.reacquire_sigmas`` times the propagation's position standard
+        deviation (plus ``vio.reacquire_floor_m``); ``None`` when it agrees."""
+        T_wc, cov = imu
+        p_vis = np.linalg.inv(track.motion.T_cw.numpy())[:3, 3]
+        sigma = float(np.sqrt(max(np.trace(cov[:3, :3]), 0.0)))
+        c = self.vio.cfg
+        gate = c.reacquire_sigmas * sigma + c.reacquire_floor_m
+        dist = float(np.linalg.norm(p_vis - T_wc[:3, 3]))
+        if dist > gate:
+            return f"re-acquired pose {dist:.2f} m from the IMU-propagated one (gate {gate:.2f} m)"
+        return None
 
     def _relocalise(self, gray: np.ndarray, tex: np.ndarray) -> Optional[Track]:
         """Lost: track against the rest of the window, newest first, from the last good pose.
@@ -414,6 +487,20 @@ class Frontend:
         self._fails += 1
         self.stats["lost_frames"] += 1
         self.state = TrackState.LOST
+        imu = (self.vio.propagate(stamp, self._last_visual)
+               if self.vio is not None and self._last_visual is not None else None)
+        if imu is not None:
+            # a vision outage while visual-inertial: the IMU carries the pose (same world frame)
+            T_wc, cov = imu
+            self.vio.frame_mode = ViState.IMU_ONLY
+            self.stats["imu_only_frames"] = self.stats.get("imu_only_frames", 0) + 1
+            if self._fails == 1:
+                self.events.append(f"vision outage at frame {stamp} ({why}): IMU-only propagation")
+                log.warning(self.events[-1])
+            self.reason = (f"IMU-only: vision outage for {(stamp - self._last_visual) * 1e-9:.2f} s "
+                           f"(at most {self.vio.cfg.outage_max_s:g} s): {why}")
+            return self.buffer.record(stamp, self.window[-1].stamp, np.linalg.inv(T_wc), TrackState.INERTIAL,
+                                      cov=cov)
         self.reason = f"tracking lost at frame {stamp}: {why}"
         self.events.append(self.reason)
         log.warning(self.reason)

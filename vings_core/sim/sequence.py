@@ -23,6 +23,7 @@ import os
 import shutil
 import time
 from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Optional
 
@@ -177,7 +178,7 @@ def generate(scene_name: str, out_dir, frames: Optional[int] = None, width: int 
              length_m: Optional[float] = None, mcap: bool = True, fps: float = 20.0,
              noise: bool = True, progress: bool = False,
              blind: Optional[tuple[float, float]] = None, slow_start_s: float = 0.0,
-             speed_factor: float = 1.0) -> Path:
+             speed_factor: float = 1.0, imu: Optional["ImuStreamOptions"] = None) -> Path:
     """Render scene ``scene_name`` and write it as an EuRoC/ASL folder at ``out_dir`` (and, if
     ``mcap``, ``<out_dir>/<scene>.mcap`` via :func:`vings_core.io.write_mcap`). Returns ``out_dir``.
 
@@ -190,12 +191,16 @@ def generate(scene_name: str, out_dir, frames: Optional[int] = None, width: int 
     many seconds (:class:`~vings_core.sim.trajectory.SlowStartMotion`; closed loops do not close
     then). ``speed_factor``: the scene's motion played that many times faster (street at 2.5: cruise
     21-29 m/s, highway speed; turn rates scale with the factor, accelerations with its square).
+    ``imu``: how the IMU stream is recorded (:class:`ImuStreamOptions`: rate, camera-IMU time
+    offset, dropped readings, gaps); the ground truth stays at 200 Hz on the true clock.
     The summary (see :func:`summarize`) is saved as ``<out_dir>/sim.json``.
     """
     if not (np.isfinite(slow_start_s) and slow_start_s >= 0):
         raise ConfigError(f"slow start must be >= 0 s, got {slow_start_s}")
     if not (np.isfinite(speed_factor) and 0.1 <= speed_factor <= 10.0):
         raise ConfigError(f"speed factor must be in [0.1, 10], got {speed_factor}")
+    if imu is not None:
+        imu.validate()
     if blind is not None:
         b0, b1 = (float(v) for v in blind)
         if not (np.isfinite(b0) and np.isfinite(b1) and 0 <= b0 < b1):
@@ -216,7 +221,7 @@ def generate(scene_name: str, out_dir, frames: Optional[int] = None, width: int 
 
     rng = np.random.default_rng(np.random.SeedSequence([int(seed), 0x1A2B]))
     noise_cfg = ImuNoise()
-    imu = simulate_imu(scene.motion, t_imu, noise_cfg if noise else None, rng if noise else None)
+    imu_data = simulate_imu(scene.motion, t_imu, noise_cfg if noise else None, rng if noise else None)
     gt = scene.motion.sample(t_imu)
     T_wc = scene.T_wc(t_frames)
 
@@ -225,11 +230,16 @@ def generate(scene_name: str, out_dir, frames: Optional[int] = None, width: int 
         dirs = _make_mav0(tmp / "mav0")
         stamps = T0_NS + frame_ns
         stats = _render_all(scene, camera, T_wc, t_frames, stamps, dirs, progress, blind)
+        st = imu or ImuStreamOptions()
+        if st != ImuStreamOptions():
+            notes.append(f"IMU recorded at {st.rate_hz:g} Hz, time offset td {1e3 * st.td_s:g} ms "
+                         f"(t_imu = t_cam + td), {100 * st.drop:g} % of readings dropped, gaps "
+                         f"{list(st.gaps)} s")
         if blind is not None:
             notes.append(f"lens covered from {blind[0]:g} s to {blind[1]:g} s: "
                          f"{stats['blind_frames']} black frames")
         _write_camera_files(dirs, stamps, camera, scene.T_bc, fps)
-        _write_imu_files(dirs, T0_NS + imu_ns, imu, gt, noise_cfg)
+        _write_imu_files(dirs, T0_NS + imu_ns, imu_data, gt, noise_cfg, imu or ImuStreamOptions(), rng)
 
         summary = summarize(scene, camera, gt, t_frames, fps, seed, noise, stats, notes)
         mcap_path = None
@@ -317,15 +327,52 @@ def _write_camera_files(dirs: dict[str, Path], stamps: np.ndarray, camera: Camer
     (dirs["cam0"] / "sensor.yaml").write_text(_sensor_yaml_cam(camera, T_bc, fps))
 
 
+@dataclass
+class ImuStreamOptions:
+    """How the simulated IMU is recorded: ``rate_hz`` (divides 200), ``td_s`` (camera-IMU time
+    offset: the reading taken at true time ``t`` is stamped ``t + td_s``, so ``t_imu = t_cam + td``),
+    ``drop`` (fraction of readings dropped at random), ``gaps`` (``(start, end)`` seconds after the
+    first frame without readings)."""
+
+    rate_hz: float = IMU_RATE_HZ
+    td_s: float = 0.0
+    drop: float = 0.0
+    gaps: tuple = ()
+
+    def validate(self) -> None:
+        step = IMU_RATE_HZ / self.rate_hz if self.rate_hz > 0 else 0.0
+        if not (self.rate_hz > 0 and abs(step - round(step)) < 1e-9):
+            raise ConfigError(f"IMU rate must divide {IMU_RATE_HZ:g} Hz, got {self.rate_hz}")
+        if not (np.isfinite(self.td_s) and abs(self.td_s) <= 0.5):
+            raise ConfigError(f"IMU time offset must be within +-0.5 s, got {self.td_s}")
+        if not 0.0 <= self.drop < 0.5:
+            raise ConfigError(f"IMU drop fraction must be in [0, 0.5), got {self.drop}")
+        for g in self.gaps:
+            if len(g) != 2 or not 0 <= g[0] < g[1]:
+                raise ConfigError(f"IMU gap must be 0 <= start < end seconds, got {g}")
+
+    def keep(self, t_s: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+        """Which readings at true times ``t_s`` (s from the first frame) are recorded."""
+        step = int(round(IMU_RATE_HZ / self.rate_hz))
+        keep = (np.arange(len(t_s)) % step) == 0
+        if self.drop > 0:
+            keep &= rng.random(len(t_s)) >= self.drop
+        for g0, g1 in self.gaps:
+            keep &= ~((t_s >= g0) & (t_s < g1))
+        return keep
+
+
 def _write_imu_files(dirs: dict[str, Path], istamps: np.ndarray, imu: ImuData, gt: MotionSample,
-                     noise_cfg: ImuNoise) -> None:
-    """``imu0`` (samples: gyro rad/s, accel m/s^2, body frame; noise of ``noise_cfg``) and
-    ``state_groundtruth_estimate0`` (body position m and quaternion wxyz with w >= 0 in the world,
-    velocity m/s, IMU biases), both at the IMU stamps ``istamps`` (ns)."""
+                     noise_cfg: ImuNoise, stream: ImuStreamOptions, rng: np.random.Generator) -> None:
+    """``imu0`` (samples: gyro rad/s, accel m/s^2, body frame; noise of ``noise_cfg``; recorded as
+    ``stream`` says) and ``state_groundtruth_estimate0`` (body position m and quaternion wxyz with
+    w >= 0 in the world, velocity m/s, IMU biases, every 200 Hz sample on the true clock), at the
+    IMU stamps ``istamps`` (ns)."""
+    keep = stream.keep((istamps - istamps[0]) * 1e-9, rng)
     _write_csv(dirs["imu0"] / "data.csv",
                "#timestamp [ns],w_RS_S_x [rad s^-1],w_RS_S_y [rad s^-1],w_RS_S_z [rad s^-1],"
                "a_RS_S_x [m s^-2],a_RS_S_y [m s^-2],a_RS_S_z [m s^-2]",
-               istamps, np.hstack([imu.gyro, imu.accel]))
+               istamps[keep] + int(round(stream.td_s * 1e9)), np.hstack([imu.gyro, imu.accel])[keep])
     (dirs["imu0"] / "sensor.yaml").write_text(_sensor_yaml_imu(noise_cfg))
     q_xyzw = np_rotmat_to_quat(gt.R)
     q_wxyz = np.hstack([q_xyzw[:, 3:], q_xyzw[:, :3]])

@@ -3,6 +3,17 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, fields
+from enum import Enum
+
+
+class ViState(str, Enum):
+    """Visual-inertial state of the front end."""
+
+    VISUAL_ONLY = "visual-only"
+    INITIALISING = "initialising"
+    VISUAL_INERTIAL = "visual-inertial"
+    STANDSTILL = "standstill"        #: the latest frame was posed at zero velocity (IMU and images still)
+    IMU_ONLY = "imu-only"            #: the latest frame was posed by IMU propagation (vision outage)
 
 
 @dataclass
@@ -35,6 +46,22 @@ class ViConfig:
     prior_vel_sigma: float = 0.1          #: ... velocity (m/s)
     prior_acc_bias_sigma: float = 0.1     #: ... accelerometer bias (m/s^2)
     prior_gyro_bias_sigma: float = 0.01   #: ... gyroscope bias (rad/s)
+    # ---- standstill (zero-velocity test; see vio/standstill.py)
+    zupt_window_s: float = 1.0            #: IMU window the test looks at (s)
+    zupt_block_s: float = 0.25            #: block length whose means are compared (s)
+    zupt_gyro_tol: float = 0.02           #: largest block deviation of the gyro mean (rad/s)
+    zupt_acc_tol: float = 0.2             #: largest block deviation of the specific force (m/s^2)
+    # ---- vision outage
+    outage_max_s: float = 2.0             #: longest IMU-only propagation without visual tracking (s)
+    reacquire_sigmas: float = 5.0         #: a re-acquired position further from the IMU-propagated one
+    reacquire_floor_m: float = 0.1        #: than this many position stds plus this floor is refused
+    # ---- online camera-IMU time offset (see vio/time_offset.py)
+    estimate_td: bool = True              #: estimate td online from rotations
+    td_window_s: float = 5.0              #: tracked frames the estimate uses (s, newest)
+    td_pair_s: float = 0.5                #: frames compared are this far apart (s)
+    td_max_abs_s: float = 0.05            #: largest correction accepted (s)
+    td_max_std_s: float = 0.002           #: largest standard deviation accepted (s)
+    td_every_keyframes: int = 5           #: re-estimate every this many keyframes
 
     def validate(self) -> None:
         for f in fields(self):
@@ -47,7 +74,10 @@ class ViConfig:
                 raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
         for name in ("noise_inflation", "max_imu_gap_s", "align_g_tol", "align_max_residual", "align_max_scale_std",
                      "visual_weight", "prior_rot_sigma", "prior_pos_sigma", "prior_vel_sigma",
-                     "prior_acc_bias_sigma", "prior_gyro_bias_sigma"):
+                     "prior_acc_bias_sigma", "prior_gyro_bias_sigma", "zupt_window_s", "zupt_block_s",
+                     "zupt_gyro_tol", "zupt_acc_tol", "reacquire_sigmas", "reacquire_floor_m",
+                     "td_window_s", "td_pair_s", "td_max_abs_s",
+                     "td_max_std_s"):
             if getattr(self, name) <= 0:
                 raise ValueError(f"{name} must be positive, got {getattr(self, name)}")
         if self.init_min_keyframes < 3:
@@ -56,5 +86,11 @@ class ViConfig:
             raise ValueError("init_max_keyframes must be >= init_min_keyframes")
         if self.smoother_iters < 1:
             raise ValueError(f"smoother_iters must be >= 1, got {self.smoother_iters}")
+        if self.outage_max_s < 0:
+            raise ValueError(f"outage_max_s must be >= 0, got {self.outage_max_s}")
+        if self.zupt_block_s * 2 > self.zupt_window_s:
+            raise ValueError("zupt_window_s must hold at least two zupt_block_s blocks")
+        if self.td_every_keyframes < 1:
+            raise ValueError(f"td_every_keyframes must be >= 1, got {self.td_every_keyframes}")
         if abs(self.td_s) > 1.0:
             raise ValueError(f"td_s must be within +-1 s, got {self.td_s}")

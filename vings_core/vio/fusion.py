@@ -23,7 +23,6 @@ import logging
 import threading
 import time
 from dataclasses import replace
-from enum import Enum
 from typing import TYPE_CHECKING, Optional
 
 import numpy as np
@@ -33,9 +32,11 @@ from ..geometry import sim3_apply_to_pose
 from ..mapping.history import scale_keyframe_depth
 from ..types import Calibration, ImuSample, Keyframe
 from .align import Alignment, align, excitation
-from .config import ViConfig
-from .preint import ImuArrays, ImuNoiseConfig, gtsam_params, gtsam_preintegrate, predict, preintegrate
+from .config import ViConfig, ViState
+from .preint import ImuArrays, centred, ImuNoiseConfig, gtsam_params, gtsam_preintegrate, predict, preintegrate
 from .smoother import NavEstimate, WindowSmoother
+from .standstill import StillTest, attitude_from_gravity, imu_still, units_problem
+from .time_offset import TdEstimate, estimate_td
 
 if TYPE_CHECKING:                      # pragma: no cover
     from ..frontend.tracker import Frontend
@@ -47,22 +48,15 @@ MAX_EVENTS = 200
 BEFORE, NOT_YET, GAP = "no IMU before", "IMU not there yet", "IMU gap"
 
 
-class ViState(str, Enum):
-    """Visual-inertial state of the front end."""
-
-    VISUAL_ONLY = "visual-only"
-    INITIALISING = "initialising"
-    VISUAL_INERTIAL = "visual-inertial"
-
-
 class ImuBuffer:
-    """IMU readings in time order on the camera clock (``stamp - td``); refuses non-finite,
-    duplicate and out-of-order readings and counts them (``refused``). Thread-safe: a node adds
-    readings from its IMU callback while the front end reads them."""
+    """IMU readings in time order, read on the camera clock (``stamp - td_ns``; ``td_ns`` may be
+    changed, e.g. by the online offset estimate) with centred holds (:func:`.preint.centred`); refuses non-finite, duplicate and out-of-order
+    readings and counts them (``refused``). Thread-safe: a node adds readings from its IMU callback
+    while the front end reads them."""
 
     def __init__(self, td_ns: int = 0, keep_s: float = 60.0):
         self._lock = threading.Lock()
-        self.td_ns = int(td_ns)
+        self._td_ns = int(td_ns)
         self.keep_ns = int(keep_s * 1e9)
         self._t: list[int] = []
         self._g: list[np.ndarray] = []
@@ -71,8 +65,19 @@ class ImuBuffer:
         self.count = 0
         self._cache: Optional[ImuArrays] = None
 
+    @property
+    def td_ns(self) -> int:
+        """Camera-IMU offset in use (ns): ``t_imu = t_cam + td``."""
+        return self._td_ns
+
+    @td_ns.setter
+    def td_ns(self, td: int) -> None:
+        with self._lock:
+            self._td_ns = int(td)
+            self._cache = None
+
     def add(self, s: ImuSample) -> bool:
-        t = int(s.stamp_ns) - self.td_ns
+        t = int(s.stamp_ns)
         g, a = np.asarray(s.gyro, np.float64), np.asarray(s.accel, np.float64)
         with self._lock:
             if not (g.shape == (3,) and a.shape == (3,) and np.isfinite(g).all() and np.isfinite(a).all()):
@@ -94,8 +99,9 @@ class ImuBuffer:
     def arrays(self) -> ImuArrays:
         with self._lock:
             if self._cache is None:
-                self._cache = ImuArrays(np.asarray(self._t, np.int64), np.asarray(self._g).reshape(-1, 3),
-                                        np.asarray(self._a).reshape(-1, 3))
+                self._cache = centred(ImuArrays(np.asarray(self._t, np.int64) - self._td_ns,
+                                                np.asarray(self._g).reshape(-1, 3),
+                                                np.asarray(self._a).reshape(-1, 3)))
             return self._cache
 
     def covers(self, t0_ns: int, t1_ns: int, max_gap_s: float) -> Optional[str]:
@@ -170,6 +176,12 @@ class ViFusion:
         self._tried_at: Optional[int] = None
         self._marginals: Optional[tuple[np.ndarray, np.ndarray]] = None   # newest state's v, bias
         self.t_fusion = 0.0
+        self.frame_mode: Optional[ViState] = None       # STANDSTILL / IMU_ONLY for the latest frame
+        self.still: Optional[StillTest] = None          # the latest standstill test that passed
+        self.units_error: Optional[str] = None          # the IMU's units are wrong (fusion refused)
+        self.td_estimate: Optional[TdEstimate] = None   # the latest online offset estimate
+        self.td_estimates = 0                           # accepted estimates
+        self._kf_since_td = 0
 
     @staticmethod
     def for_source(cfg: Optional[ViConfig], calib: Calibration, has_imu: bool) -> tuple[Optional["ViFusion"], str]:
@@ -193,10 +205,112 @@ class ViFusion:
         self.events.append(text)
         del self.events[:-MAX_EVENTS]
 
+    @property
+    def td_s(self) -> float:
+        """Camera-IMU time offset in use (s): ``t_imu = t_cam + td``."""
+        return self.imu.td_ns * 1e-9
+
     # --------------------------------------------------------------------------- inputs
 
     def add_imu(self, s: ImuSample) -> bool:
-        return self.imu.add(s)
+        return self.imu.add(s) if self.units_error is None else False
+
+    def _refuse_units(self, why: str) -> None:
+        """The IMU's units are wrong: no fusion from now on (an ERROR, never a silent misuse)."""
+        self.units_error = why
+        self.smoother = None
+        self.state = ViState.VISUAL_ONLY
+        self.reason = f"visual-only: IMU refused: {why}"
+        self._event(self.reason)
+        log.error("vio: %s", self.reason)
+
+    # ------------------------------------------------------------------ standstill, outage
+
+    def standstill(self, stamp_ns: int) -> Optional[np.ndarray]:
+        """``R_wb`` (roll and pitch from the accelerometer, yaw 0) when the IMU is still at
+        ``stamp_ns`` (:func:`.standstill.imu_still`), else ``None``. The first still window also
+        checks the accelerometer's units: a stream in g or with gravity removed is refused
+        (:attr:`units_error`, fusion off)."""
+        if self.units_error is not None:
+            return None
+        c = self.cfg
+        test = imu_still(self.imu.arrays(), stamp_ns, c.zupt_window_s, c.zupt_block_s, c.zupt_gyro_tol,
+                         c.zupt_acc_tol)
+        if test is None or not test.still:
+            return None
+        why = units_problem(float(np.linalg.norm(test.acc_mean)), self.noise.gravity)
+        if why is not None:
+            self._refuse_units(why)
+            return None
+        self.still = test
+        return attitude_from_gravity(test.acc_mean)
+
+    def propagate(self, stamp_ns: int, since_visual_ns: int) -> Optional[tuple[np.ndarray, np.ndarray]]:
+        """IMU-only pose at ``stamp_ns`` through a vision outage: ``(T_wc, cov)`` with ``cov`` the
+        6x6 left-tangent ``[rho, phi]`` covariance of ``T_wc``; ``None`` unless visual-inertial,
+        with IMU readings up to ``stamp_ns``, and the outage (since the last visually tracked frame
+        ``since_visual_ns``) at most ``outage_max_s``. The newest smoother state is propagated with
+        its biases. The covariance grows from that state's marginals: position
+        ``P_v dt^2 + P_ba dt^4 / 4 + s_a^2 dt^3 / 3``, rotation ``P_bg dt^2 + s_g^2 dt``."""
+        if self.state != ViState.VISUAL_INERTIAL or self.smoother is None or not self.smoother.states:
+            return None
+        if (stamp_ns - since_visual_ns) * 1e-9 > self.cfg.outage_max_s:
+            return None
+        est = self.smoother.latest()
+        if stamp_ns <= est.stamp_ns or self.imu.covers(est.stamp_ns, stamp_ns, self.cfg.max_imu_gap_s) is not None:
+            return None
+        pre = preintegrate(self.imu.arrays(), est.stamp_ns, stamp_ns, est.bg, est.ba)
+        R, p, _ = predict(pre, est.T_wb[:3, :3], est.T_wb[:3, 3], est.v,
+                          np.array([0.0, 0.0, -self.noise.gravity]))
+        T_wb = np.eye(4)
+        T_wb[:3, :3], T_wb[:3, 3] = R, p
+        T_wc = T_wb @ self.T_bc
+        dt = pre.dt
+        Pv, Pb = self._marginals if self._marginals is not None else (np.eye(3) * 0.01, np.eye(6) * 1e-4)
+        n = self.noise
+        Pp = Pv * dt ** 2 + Pb[:3, :3] * dt ** 4 / 4 + np.eye(3) * n.accel_noise_density ** 2 * dt ** 3 / 3
+        Pr = Pb[3:, 3:] * dt ** 2 + np.eye(3) * n.gyro_noise_density ** 2 * dt
+        # world-frame (dp, dtheta) -> left tangent of T_wc: rho = dp + [p]x dtheta, phi = dtheta
+        A = np.eye(6)
+        px = T_wc[:3, 3]
+        A[:3, 3:] = np.array([[0.0, -px[2], px[1]], [px[2], 0.0, -px[0]], [-px[1], px[0], 0.0]])
+        cov = A @ np.block([[Pp, np.zeros((3, 3))], [np.zeros((3, 3)), Pr]]) @ A.T
+        return T_wc, cov
+
+    # ------------------------------------------------------------------------ time offset
+
+    def _update_td(self, fe: "Frontend") -> None:
+        """Estimate the camera-IMU offset from the segment's newest tracked frames (``td_window_s``)
+        and apply an accepted correction; the IMU buffer reads on the new clock from then on."""
+        c = self.cfg
+        seg, R_bc = fe.init.segment.index, self.T_bc[:3, :3]
+        bg = self.smoother.latest().bg if self.smoother is not None and self.smoother.states else None
+        kw = dict(max_abs_s=c.td_max_abs_s, max_std_s=c.td_max_std_s)
+        # every tracked frame of the newest td_window_s; while initialising their rotations are the
+        # images' alone, once visual-inertial the smoother has pulled them part of the way towards
+        # the offset in use (see the gain below)
+        traj = fe.buffer.trajectory(("tracking",), None, {seg})
+        stamps = np.asarray(traj.stamps_ns, np.int64)
+        keep = stamps >= (stamps[-1] if len(stamps) else 0) - int(c.td_window_s * 1e9)
+        R_wb = traj.poses[keep, :3, :3] @ R_bc.T
+        e = estimate_td(self.imu.arrays(), stamps[keep], R_wb, bg, pair_s=c.td_pair_s, **kw)
+        self.td_estimate = e
+        log.debug("vio: time offset estimate: %s", e)
+        if not e.ok:
+            log.debug("vio: time offset not estimated: %s", e.why)
+            return
+        # the first estimate is taken whole; later ones move the offset half way, a fixed-point
+        # iteration whose fixed point is where the rotations agree (once visual-inertial, the
+        # smoother pulls the rotations towards the offset in use, so a correction is seen only in
+        # part and is applied again at the next estimate), damped against the estimates' noise
+        gain = 1.0 if self.td_estimates == 0 else 0.5
+        self.td_estimates += 1
+        td = self.td_s + gain * e.delta_s
+        if self.td_estimates == 1:
+            self._event(f"time offset estimated: td {1e3 * td:.2f} ms (correction {1e3 * e.delta_s:+.2f} ms, "
+                        f"std {1e3 * e.std_s:.2f} ms over {e.pairs} frame pairs)")
+            log.info("vio: %s", self.events[-1])
+        self.imu.td_ns = int(round(td * 1e9))
 
     def reset(self, why: str) -> None:
         """Back to initialising (a new map segment, an IMU gap): the smoother is dropped."""
@@ -213,6 +327,12 @@ class ViFusion:
         """Called by the front end after each accepted window BA of a new keyframe."""
         t = time.perf_counter()
         try:
+            if self.cfg.estimate_td and self.state != ViState.VISUAL_ONLY:
+                self._kf_since_td += 1
+                # while initialising the frames' rotations are the images' alone: every keyframe
+                if self.state == ViState.INITIALISING or self._kf_since_td >= self.cfg.td_every_keyframes:
+                    self._kf_since_td = 0
+                    self._update_td(fe)
             if self.state == ViState.INITIALISING:
                 self._try_initialise(fe)
             elif self.state == ViState.VISUAL_INERTIAL:
@@ -231,7 +351,11 @@ class ViFusion:
 
     def _try_initialise(self, fe: "Frontend") -> None:
         c = self.cfg
-        kfs = fe.buffer.keyframes_of_segment(fe.init.segment.index)[-c.init_max_keyframes:]
+        kfs = fe.buffer.keyframes_of_segment(fe.init.segment.index)
+        st = self.imu.arrays().stamps_ns
+        if len(st):       # keyframes before the first reading (on the camera clock) cannot take part
+            kfs = [s for s in kfs if s >= st[0]]
+        kfs = kfs[-c.init_max_keyframes:]
         if len(kfs) < c.init_min_keyframes or (kfs[-1] - kfs[0]) * 1e-9 < c.init_min_span_s:
             self.reason = (f"initialising: {len(kfs)} keyframe(s) over {(kfs[-1] - kfs[0]) * 1e-9 if kfs else 0:.2f} s "
                            f"(need {c.init_min_keyframes} over {c.init_min_span_s:g} s)")
@@ -273,7 +397,10 @@ class ViFusion:
         self.scale_applied *= al.scale
         R = C[:3, :3] / al.scale
         vel = {s: R @ v for s, v in zip(kfs, al.velocities)}
-        self._start_smoother(fe, vel, al.bg)
+        if not self._start_smoother(fe, vel, al.bg):
+            self.smoother = None          # the poses are metric now; the next alignment starts it
+            self._event(f"alignment at keyframe {kfs[-1]} applied, smoother not started: {self.reason}")
+            return
         self.state = ViState.VISUAL_INERTIAL
         if self.initialised_at_ns is None:
             self.initialised_at_ns = int(kfs[-1])
@@ -286,9 +413,15 @@ class ViFusion:
     def _body(self, fe: "Frontend", s: int) -> np.ndarray:
         return fe.pose(s) @ np.linalg.inv(self.T_bc)
 
-    def _start_smoother(self, fe: "Frontend", vel: dict[int, np.ndarray], bg: np.ndarray) -> None:
+    def _start_smoother(self, fe: "Frontend", vel: dict[int, np.ndarray], bg: np.ndarray) -> bool:
+        """The smoother over the window's keyframes from the first one with IMU readings before it;
+        ``False`` (and no smoother) when the IMU does not cover them."""
         c = self.cfg
-        win = [k.stamp for k in fe.window]
+        st = self.imu.arrays().stamps_ns
+        win = [k.stamp for k in fe.window if len(st) and k.stamp >= st[0]]
+        if len(win) < 2:
+            self.reason = "initialising: the IMU does not cover the window's keyframes"
+            return False
         sm = WindowSmoother(self.params, self.T_bc)
         first = win[0]
         sm.start(NavEstimate(first, self._body(fe, first), vel.get(first, np.zeros(3)), np.zeros(3), bg),
@@ -297,8 +430,9 @@ class ViFusion:
         self.smoother = sm
         for s in win[1:]:
             if not self._add_state(fe, s, vel.get(s)):
-                return
+                return self.smoother is not None     # a gap resets; readings not there yet wait
         self._visual_and_optimise(fe)
+        return True
 
     def _add_state(self, fe: "Frontend", s: int, v: Optional[np.ndarray] = None) -> bool:
         sm = self.smoother
@@ -390,7 +524,14 @@ class ViFusion:
                "vi_initialised_at_ns": self.initialised_at_ns,
                "vi_scale_applied": self.scale_applied, "imu_samples": self.imu.count,
                "imu_refused": dict(self.imu.refused), "alignments_refused": self.alignments_refused,
-               "td_s": self.cfg.td_s, "t_fusion_s": round(self.t_fusion, 3)}
+               "td_s": self.td_s, "td_estimates": self.td_estimates,
+               "t_fusion_s": round(self.t_fusion, 3)}
+        if self.frame_mode is not None and self.state != ViState.VISUAL_ONLY:
+            out["vi_state"] = self.frame_mode.value
+        if self.units_error is not None:
+            out["vi_error"] = self.units_error
+        if self.still is not None:
+            out["still_acc_mean"] = self.still.acc_mean.tolist()
         if self.smoother is not None and self.smoother.states:
             e = self.smoother.latest()
             out.update(acc_bias=e.ba.tolist(), gyro_bias=e.bg.tolist(), velocity=e.v.tolist())

@@ -48,17 +48,27 @@ def register(subparsers) -> None:
                    help="play the motion F times faster (street at 2.5: 21-29 m/s, highway speed)")
     p.add_argument("--blind", type=_interval, default=None, metavar="T0:T1",
                    help="lens covered from T0 to T1 seconds after the first frame (black images)")
+    p.add_argument("--imu-rate", type=float, default=200.0, metavar="HZ",
+                   help="IMU rate (Hz, divides 200)")
+    p.add_argument("--imu-td", type=float, default=0.0, metavar="S",
+                   help="camera-IMU time offset: readings stamped t + S (t_imu = t_cam + td)")
+    p.add_argument("--imu-drop", type=float, default=0.0, metavar="F",
+                   help="fraction of IMU readings dropped at random")
+    p.add_argument("--imu-gap", type=_interval, action="append", default=[], metavar="T0:T1",
+                   help="no IMU readings from T0 to T1 seconds after the first frame (repeatable)")
     p.add_argument("--progress", action="store_true", help="show a progress bar")
     p.set_defaults(func=run)
 
 
 def run(args) -> int:
     from vings_core.sim import generate, load_summary
+    from vings_core.sim.sequence import ImuStreamOptions
 
     out = generate(args.scene, args.out, frames=args.frames, width=args.width, height=args.height,
                    seed=args.seed, dynamic=args.dynamic, loop=args.loop, length_m=args.length_m,
                    mcap=not args.no_mcap, fps=args.fps, noise=not args.no_noise,
                    progress=args.progress, blind=args.blind, slow_start_s=args.slow_start,
-                   speed_factor=args.speed_factor)
+                   speed_factor=args.speed_factor,
+                   imu=ImuStreamOptions(args.imu_rate, args.imu_td, args.imu_drop, tuple(args.imu_gap)))
     print(json.dumps(load_summary(out), indent=2))
     return 0
