@@ -18,7 +18,8 @@ from vings_core.types import Trajectory
 CONTRACT_KEYS = ["frames", "frames_tracked", "keyframes", "wall_s", "fps", "ate_sim3_m", "ate_se3_m",
                  "sim3_scale", "rpe", "psnr_keyframes_db", "psnr_novel_db", "ssim_keyframes",
                  "num_gaussians", "peak_rss_mb", "keyframes_light", "queue_peak_keyframes", "queue_spilled", "frames_unposed", "frames_unposed_reason", "segments", "ate_segments_m",
-                 "vi_state", "vi_initialised_at_s", "scale_observable", "acc_bias", "gyro_bias", "td_s"]
+                 "vi_state", "vi_initialised_at_s", "scale_observable", "acc_bias", "gyro_bias", "td_s",
+                 "td_estimates", "imu_only_frames", "vi_error"]
 
 
 def test_metric_keys_are_the_contract():

@@ -43,7 +43,7 @@ def _run(frames, n: int) -> Frontend:
 
 
 def test_track_state_reads_as_its_string_value():
-    assert STATES == (TrackState.WAITING, TrackState.TRACKING, TrackState.LOST)
+    assert STATES == (TrackState.WAITING, TrackState.TRACKING, TrackState.LOST, TrackState.INERTIAL)
     for st in TrackState:
         v = st.value
         assert st == v and v == st and hash(st) == hash(v) and {v: 1}[st] == 1

@@ -669,7 +669,9 @@ class SlamRunner:
         at = self.vio.initialised_at_ns
         return {"vi_state": st["vi_state"], "scale_observable": at is not None,
                 "vi_initialised_at_s": None if at is None else (at - t0) * 1e-9,
-                "acc_bias": st.get("acc_bias"), "gyro_bias": st.get("gyro_bias"), "td_s": st["td_s"]}
+                "acc_bias": st.get("acc_bias"), "gyro_bias": st.get("gyro_bias"), "td_s": st["td_s"],
+                "td_estimates": st["td_estimates"], "imu_only_frames": self.frontend.stats["imu_only_frames"],
+                "vi_error": st.get("vi_error")}
 
     def _write_final(self, final: dict, t0: float) -> dict:
         """Replace the previous run's files by this run's, ``metrics.json`` last. Everything is

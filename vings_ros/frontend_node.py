@@ -286,6 +286,9 @@ class FrontendNode(StageNode):
                   "late_poses": self.late_poses,
                   **self._vi_values(st),
                   **self._exchange_values()}
+        if st.get("vi_error"):
+            # the IMU's units are wrong (in g, or gravity removed): not fused, never silently
+            return NodeStatus(Level.ERROR, f"IMU not fused: {st['vi_error']}", values)
         if self.imu_count and self.vcfg.enabled and (self.frontend is None or self.frontend.vio is None):
             # an IMU that cannot be fused (no T_bc): never a silent identity
             return NodeStatus(Level.ERROR, self._no_fusion_why(), values)
@@ -299,7 +302,7 @@ class FrontendNode(StageNode):
         """The visual-inertial state for /diagnostics (plain values)."""
         out = {"vi_state": st.get("vi_state", "visual-only"), "vi_reason": st.get("vi_reason", self.vio_why)}
         for k in ("vi_scale_applied", "acc_bias", "gyro_bias", "velocity", "gravity_visual_world",
-                  "imu_refused", "alignments_refused", "td_s"):
+                  "imu_refused", "alignments_refused", "td_s", "td_estimates", "vi_error", "imu_only_frames"):
             if k in st:
                 v = st[k]
                 out[k] = str(v) if isinstance(v, (list, dict)) else v

@@ -55,10 +55,12 @@ METRIC_KEYS = (
     "keyframes_light", "queue_peak_keyframes", "queue_spilled",
     "frames_unposed", "frames_unposed_reason", "segments", "ate_segments_m",
     "vi_state", "vi_initialised_at_s", "scale_observable", "acc_bias", "gyro_bias", "td_s",
+    "td_estimates", "imu_only_frames", "vi_error",
 )
 _INT_KEYS = {"frames", "frames_tracked", "keyframes", "num_gaussians", "keyframes_light",
-             "queue_peak_keyframes", "queue_spilled", "frames_unposed", "segments"}
-_STR_KEYS = {"frames_unposed_reason", "vi_state"}
+             "queue_peak_keyframes", "queue_spilled", "frames_unposed", "segments", "td_estimates",
+             "imu_only_frames"}
+_STR_KEYS = {"frames_unposed_reason", "vi_state", "vi_error"}
 _BOOL_KEYS = {"scale_observable"}
 _LIST_KEYS = {"ate_segments_m", "acc_bias", "gyro_bias"}
 #: Keys of :func:`vings_core.eval.traj.evaluate_trajectory`'s result that go into metrics.json.

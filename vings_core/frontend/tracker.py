@@ -493,7 +493,7 @@ class Frontend:
             # a vision outage while visual-inertial: the IMU carries the pose (same world frame)
             T_wc, cov = imu
             self.vio.frame_mode = ViState.IMU_ONLY
-            self.stats["imu_only_frames"] = self.stats.get("imu_only_frames", 0) + 1
+            self.stats["imu_only_frames"] += 1
             if self._fails == 1:
                 self.events.append(f"vision outage at frame {stamp} ({why}): IMU-only propagation")
                 log.warning(self.events[-1])
