@@ -102,7 +102,7 @@ class Frontend:
         self._fails = 0                                # lost frames in a row
         self._last_stamp: Optional[int] = None
         self._last_visual: Optional[int] = None         # the last frame posed by the images
-        self._still_T_wc: Optional[np.ndarray] = None   # standstill pose before initialisation
+        self._still_anchored = False                    # the segment is anchored at a standstill
         # the camera grid (read-only) and the shared counters, as attributes of the front end
         ctx = self.ctx
         self.camera, self.W, self.H, self.K, self.Kmat = ctx.camera, ctx.W, ctx.H, ctx.K, ctx.Kmat
@@ -360,19 +360,18 @@ class Frontend:
         initialisation continues in this gravity-aligned frame (at its own scale until the metric
         alignment). ``None`` when not at a standstill."""
         vio = self.vio
-        if (vio is None or self.ctx.motion_detected or self.init.segment.index != 0
-                or self.buffer.keyframes_of_segment(0)):
+        if vio is None or self.ctx.motion_detected or self.init.segment.index != 0:
             return None
         R_wb = vio.standstill(stamp)
         if R_wb is None:
             return None
         vio.frame_mode = ViState.STANDSTILL
         out = []
-        if self._still_T_wc is None:
+        if not self._still_anchored:
+            self._still_anchored = True
             T_wb = np.eye(4)
             T_wb[:3, :3] = R_wb
-            self._still_T_wc = T_wb @ vio.T_bc
-            self.init.segment.T_cw = np.linalg.inv(self._still_T_wc)
+            self.init.segment.T_cw = np.linalg.inv(T_wb @ vio.T_bc)
             waiting = [s for s, st in self.buffer.frame_states().items() if st == TrackState.WAITING]
             out = [self.buffer.record(s, None, self.init.segment.T_cw.copy(), TrackState.INERTIAL)
                    for s in waiting]
@@ -409,7 +408,7 @@ class Frontend:
             if found is not None and (imu is None or self._imu_disagrees(found, imu) is None):
                 track, why = found, None
         if why is not None:
-            return [self._fail(stamp, why)]
+            return [self._fail(stamp, why, imu)]
         if self.state == TrackState.LOST:
             self.stats["relocalisations"] += 1
             self.events.append(f"relocalised at frame {stamp} against keyframe {track.kf.stamp} after "
@@ -483,12 +482,18 @@ class Frontend:
             est.T_wc = self.buffer.pose(new.stamp)
         return est
 
-    def _fail(self, stamp: int, why: str) -> PoseEstimate:
+    def _fail(self, stamp: int, why: str,
+              imu: Optional[tuple[np.ndarray, np.ndarray]] = None) -> PoseEstimate:
+        """Record a frame visual tracking failed on: posed by the IMU (``imu``, the propagation
+        :meth:`_step_tracking` made when already lost; made here on the first failure) while
+        :meth:`ViFusion.propagate` can, else at the last good pose; a new segment after
+        ``relocalize_frames`` such frames."""
+        first = self.state != TrackState.LOST
+        if imu is None and first and self.vio is not None and self._last_visual is not None:
+            imu = self.vio.propagate(stamp, self._last_visual)
         self._fails += 1
         self.stats["lost_frames"] += 1
         self.state = TrackState.LOST
-        imu = (self.vio.propagate(stamp, self._last_visual)
-               if self.vio is not None and self._last_visual is not None else None)
         if imu is not None:
             # a vision outage while visual-inertial: the IMU carries the pose (same world frame)
             T_wc, cov = imu

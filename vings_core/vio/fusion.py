@@ -33,7 +33,8 @@ from ..mapping.history import scale_keyframe_depth
 from ..types import Calibration, ImuSample, Keyframe
 from .align import Alignment, align, excitation
 from .config import ViConfig, ViState
-from .preint import ImuArrays, centred, ImuNoiseConfig, gtsam_params, gtsam_preintegrate, predict, preintegrate
+from .preint import (ImuArrays, ImuNoiseConfig, centred, gtsam_params, gtsam_preintegrate, hat, predict,
+                     preintegrate)
 from .smoother import NavEstimate, WindowSmoother
 from .standstill import StillTest, attitude_from_gravity, imu_still, units_problem
 from .time_offset import TdEstimate, estimate_td
@@ -50,9 +51,9 @@ BEFORE, NOT_YET, GAP = "no IMU before", "IMU not there yet", "IMU gap"
 
 class ImuBuffer:
     """IMU readings in time order, read on the camera clock (``stamp - td_ns``; ``td_ns`` may be
-    changed, e.g. by the online offset estimate) with centred holds (:func:`.preint.centred`); refuses non-finite, duplicate and out-of-order
-    readings and counts them (``refused``). Thread-safe: a node adds readings from its IMU callback
-    while the front end reads them."""
+    changed, e.g. by the online offset estimate) with centred holds (:func:`.preint.centred`);
+    refuses non-finite, duplicate and out-of-order readings and counts them (``refused``).
+    Thread-safe: a node adds readings from its IMU callback while the front end reads them."""
 
     def __init__(self, td_ns: int = 0, keep_s: float = 60.0):
         self._lock = threading.Lock()
@@ -272,8 +273,7 @@ class ViFusion:
         Pr = Pb[3:, 3:] * dt ** 2 + np.eye(3) * n.gyro_noise_density ** 2 * dt
         # world-frame (dp, dtheta) -> left tangent of T_wc: rho = dp + [p]x dtheta, phi = dtheta
         A = np.eye(6)
-        px = T_wc[:3, 3]
-        A[:3, 3:] = np.array([[0.0, -px[2], px[1]], [px[2], 0.0, -px[0]], [-px[1], px[0], 0.0]])
+        A[:3, 3:] = hat(T_wc[:3, 3])
         cov = A @ np.block([[Pp, np.zeros((3, 3))], [np.zeros((3, 3)), Pr]]) @ A.T
         return T_wc, cov
 
@@ -295,7 +295,6 @@ class ViFusion:
         R_wb = traj.poses[keep, :3, :3] @ R_bc.T
         e = estimate_td(self.imu.arrays(), stamps[keep], R_wb, bg, pair_s=c.td_pair_s, **kw)
         self.td_estimate = e
-        log.debug("vio: time offset estimate: %s", e)
         if not e.ok:
             log.debug("vio: time offset not estimated: %s", e.why)
             return

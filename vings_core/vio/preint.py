@@ -21,7 +21,7 @@ from ..errors import InputError
 def _exp_np(phi: np.ndarray) -> np.ndarray:
     """SO(3) exponential (Rodrigues)."""
     th = float(np.linalg.norm(phi))
-    K = _hat(phi)
+    K = hat(phi)
     if th < 1e-8:
         return np.eye(3) + K + 0.5 * K @ K
     return np.eye(3) + np.sin(th) / th * K + (1 - np.cos(th)) / th ** 2 * K @ K
@@ -44,15 +44,16 @@ def so3_log_np(R: np.ndarray) -> np.ndarray:
     return th / (2.0 * np.sin(th)) * w
 
 
-def _hat(w: np.ndarray) -> np.ndarray:
+def hat(w: np.ndarray) -> np.ndarray:
+    """Cross-product matrix ``[w]_x`` of a 3-vector."""
     return np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
 
 
 def _right_jacobian(phi: np.ndarray) -> np.ndarray:
     th = float(np.linalg.norm(phi))
     if th < 1e-8:
-        return np.eye(3) - 0.5 * _hat(phi)
-    K = _hat(phi / th)
+        return np.eye(3) - 0.5 * hat(phi)
+    K = hat(phi / th)
     return np.eye(3) - (1 - np.cos(th)) / th * K + (th - np.sin(th)) / th * K @ K
 
 
@@ -142,7 +143,7 @@ def preintegrate(imu: ImuArrays, t0_ns: int, t1_ns: int, bg=None, ba=None) -> Pr
         w, a = w - bg, a - ba
         phi = w * dt
         Exp = _exp_np(phi)
-        A = dR @ _hat(a)
+        A = dR @ hat(a)
         # Jacobians first (they use dR, dv at the start of the step)
         Jpg = Jpg + Jvg * dt - 0.5 * A @ JRg * dt * dt
         Jpa = Jpa + Jva * dt - 0.5 * dR * dt * dt

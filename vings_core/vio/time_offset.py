@@ -20,7 +20,8 @@ from typing import Sequence
 
 import numpy as np
 
-from .preint import ImuArrays, so3_log_np
+from ..geometry import np_so3_exp, np_so3_log
+from .preint import ImuArrays
 
 
 @dataclass
@@ -39,18 +40,6 @@ class TdEstimate:
     why: str = ""
 
 
-def _exp_batch(phi: np.ndarray) -> np.ndarray:
-    """SO(3) exponentials of rotation vectors ``(N, 3)`` -> ``(N, 3, 3)`` (Rodrigues)."""
-    th = np.linalg.norm(phi, axis=1)
-    K = np.zeros((len(phi), 3, 3))
-    K[:, 0, 1], K[:, 0, 2], K[:, 1, 2] = -phi[:, 2], phi[:, 1], -phi[:, 0]
-    K -= K.transpose(0, 2, 1)
-    small = th < 1e-8
-    a = np.where(small, 1.0, np.sin(th) / np.where(small, 1.0, th))
-    b = np.where(small, 0.5, (1 - np.cos(th)) / np.where(small, 1.0, th) ** 2)
-    return np.eye(3) + a[:, None, None] * K + b[:, None, None] * K @ K
-
-
 class GyroAttitude:
     """Gyro-integrated attitude over a stretch of readings (each held from its stamp to the next:
     pass :func:`.preint.centred` readings), queried at any time: ``Q(t)`` (the
@@ -65,7 +54,7 @@ class GyroAttitude:
         self.t = st[i0:i1]
         self.w = imu.gyro[i0:i1] - bg
         dt = np.diff(self.t) * 1e-9
-        inc = _exp_batch(self.w[:-1] * dt[:, None])
+        inc = np_so3_exp(self.w[:-1] * dt[:, None])
         Q = np.empty((len(self.t), 3, 3))
         Q[0] = np.eye(3)
         for k in range(len(dt)):                 # a few hundred 3x3 products
@@ -78,7 +67,7 @@ class GyroAttitude:
         holding at camera-clock times ``t_ns``."""
         k = np.clip(np.searchsorted(self.t, t_ns, side="right") - 1, 0, len(self.t) - 1)
         tau = (np.asarray(t_ns) - self.t[k]) * 1e-9
-        Qt = self.Q[k] @ _exp_batch(self.w[k] * tau[:, None])
+        Qt = self.Q[k] @ np_so3_exp(self.w[k] * tau[:, None])
         return Qt, self.S[k] + Qt * tau[:, None, None], self.w[k]
 
 
@@ -114,7 +103,7 @@ def estimate_td(imu: ImuArrays, stamps_ns: Sequence[int], R_wb: Sequence[np.ndar
         return TdEstimate(0.0, float("inf"), bg, pairs=len(i),
                           why=f"{len(i)} frame pairs with IMU around them (need {min_pairs})")
     dR_vis = R[i].transpose(0, 2, 1) @ R[j]
-    ang = np.array([so3_log_np(M) for M in dR_vis])
+    ang = np_so3_log(dR_vis)
     rate = float(np.sqrt(np.mean(np.sum(ang ** 2, 1) / ((st[j] - st[i]) * 1e-9) ** 2)))
     if rate < min_rate:
         return TdEstimate(0.0, float("inf"), bg, pairs=len(i), rate=rate,
@@ -128,7 +117,7 @@ def estimate_td(imu: ImuArrays, stamps_ns: Sequence[int], R_wb: Sequence[np.ndar
         Qi, Si, wi = att.at(st[i] + dn)
         Qj, Sj, wj = att.at(st[j] + dn)
         dR = Qi.transpose(0, 2, 1) @ Qj
-        r = np.array([so3_log_np(M) for M in dR_vis.transpose(0, 2, 1) @ dR])
+        r = np_so3_log(dR_vis.transpose(0, 2, 1) @ dR)
         J_bg = -Qj.transpose(0, 2, 1) @ (Sj - Si)
         J_d = wj - np.einsum("nji,nj->ni", dR, wi)          # w_j - dR^T w_i
         A = np.concatenate([J_bg, J_d[:, :, None]], axis=2).reshape(-1, 4)
