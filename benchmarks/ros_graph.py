@@ -6,7 +6,9 @@ Experiments on one synthetic `room` sequence:
   ``backpressure``) versus `vings run --sync` on the same MCAP with the same params file: Sim(3)
   ATE of each (graph: the final /vings/path), their relative difference, and the front end alone
   (no mapper) as a reference. Both exchange poses with the same classes and write-back policy
-  (``exchange.mapper``; ``--writeback`` overrides it for both).
+  (``exchange.mapper``; ``--writeback`` overrides it for both). Both fuse the simulated IMU (the
+  graph's front end gets ``room.calib.yaml`` as ``frontend_node.calib_file``; ``--no-imu``: both
+  visual-only); the graph's path is checked for a metric (Sim(3) scale) gravity-aligned frame.
 * ``live``: replay at 20 Hz without back-pressure (policy ``keep_newest``): fraction of frames that
   get odometry, and publish -> odometry latency (receive wall clock minus publish wall clock) p50/p95.
 * ``resume``: the mapper is killed (SIGKILL) mid-run, once its checkpoint holds keyframes and
@@ -16,7 +18,7 @@ Experiments on one synthetic `room` sequence:
 
     python benchmarks/ros_graph.py [--frames 120] [--width 376 --height 240] [--work DIR]
                                    [--only parity,live,resume] [--writeback none|all|consistent]
-                                   [-p section.key=value ...]
+                                   [--no-imu] [-p section.key=value ...]
 """
 from __future__ import annotations
 
@@ -163,6 +165,18 @@ def ate(traj, gt) -> float:
     return float(evaluate_trajectory(traj, gt)["ate_sim3_m"])
 
 
+def gravity_and_scale(traj, gt) -> dict:
+    """Whether ``traj`` is in a metric gravity-aligned frame: the Sim(3) scale to the truth and the
+    median angle between the estimated and the true gravity in the camera frame (deg)."""
+    from vings_core.eval.traj import associate, evaluate_trajectory
+    e, g = associate(traj, gt, max_dt_ns=5_000_000)
+    z = np.array([0.0, 0.0, -1.0])
+    ang = [np.degrees(np.arccos(np.clip((Pe[:3, :3].T @ z) @ (Pg[:3, :3].T @ z), -1, 1)))
+           for Pe, Pg in zip(e.poses, g.poses)]
+    return {"sim3_scale_graph": float(evaluate_trajectory(traj, gt)["sim3_scale"]),
+            "gravity_err_deg_graph": float(np.median(ang))}
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--frames", type=int, default=120)
@@ -173,6 +187,9 @@ def main() -> int:
     ap.add_argument("--only", default="parity,live,resume", help="experiments to run (comma list)")
     ap.add_argument("--writeback", default=None, choices=("none", "all", "consistent"),
                     help="exchange.mapper (the write-back policy for the mapper's refinements) for both the offline run and the graph")
+    ap.add_argument("--no-imu", action="store_true",
+                    help="visual-only on both sides (vings run --no-imu; the graph without "
+                         "frontend_node.calib_file); by default both fuse the simulated IMU")
     ap.add_argument("-p", "--param", action="append", default=[], metavar="SECTION.KEY=VALUE",
                     help="extra ROS parameter for both graph nodes (e.g. mapper_node.threads=1)")
     args = ap.parse_args()
@@ -202,6 +219,9 @@ def main() -> int:
         text += f"    exchange:\n      mapper: {args.writeback}\n"
     mp.write_text(text)
     graph_params = ([] if not args.writeback else [f"exchange.mapper={args.writeback}"]) + list(args.param)
+    if not args.no_imu:      # the calibration vings run reads beside the MCAP gives the node T_bc
+        graph_params.append(f"frontend_node.calib_file={seq / 'room.calib.yaml'}")
+    result["imu_fused"] = not args.no_imu
     result["uptime_start"] = os.getloadavg()
     from vings_core.frontend import Frontend, FrontendConfig
     from vings_core.config import load_section
@@ -220,24 +240,36 @@ def main() -> int:
         return lis
 
     def frontend_alone() -> dict:
-        fe_alone = Frontend(load_section(FrontendConfig, "frontend", str(mp)), src.calibration.camera)
-        frames = list(open_source(mcap).frames())
+        from vings_core.types import POSED_STATES, Frame
+        from vings_core.vio.config import ViConfig
+        from vings_core.vio.fusion import ViFusion
+        bag = open_source(mcap)
+        vio = None if args.no_imu else ViFusion.for_source(ViConfig(), bag.calibration, True)[0]
+        fe_alone = Frontend(load_section(FrontendConfig, "frontend", str(mp)), bag.calibration.camera, vio=vio)
+        items = list(bag.stream()) if vio is not None else list(bag.frames())
         t1 = time.perf_counter()
-        for f in frames:
-            fe_alone.process(f)
+        for it in items:
+            if isinstance(it, Frame):
+                fe_alone.process(it)
+            else:
+                fe_alone.add_imu(it)
         fe_alone.finish()
         fe_wall = time.perf_counter() - t1
         # in-process, no ROS, same load: what the live graph's front end could reach at best
-        return {"ate_sim3_m": ate(fe_alone.trajectory(states=("tracking",)), gt),
-                "fps": len(frames) / fe_wall, "loadavg": os.getloadavg()}
+        return {"ate_sim3_m": ate(fe_alone.trajectory(states=POSED_STATES), gt),
+                "fps": len(stamps) / fe_wall, "loadavg": os.getloadavg(),
+                "vi_state": fe_alone.status()["vi_state"]}
 
     def offline() -> dict:
         nonlocal ate_off
         t0 = time.perf_counter()
         subprocess.run([sys.executable, "-m", "vings_ros.cli", "run", str(mcap), "--out", str(off), "--sync",
-                        "--params", str(mp), "--no-progress"], stdout=log, stderr=subprocess.STDOUT, check=True)
+                        "--params", str(mp), "--no-progress"] + (["--no-imu"] if args.no_imu else []),
+                       stdout=log, stderr=subprocess.STDOUT, check=True)
         ate_off = ate(read_tum(off / "trajectory.tum"), gt)
-        return {"ate_sim3_m": ate_off, "wall_s": time.perf_counter() - t0}
+        m = json.loads((off / "metrics.json").read_text())
+        return {"ate_sim3_m": ate_off, "wall_s": time.perf_counter() - t0, "vi_state": m.get("vi_state"),
+                "sim3_scale": m.get("sim3_scale"), "frames_tracked": m.get("frames_tracked")}
 
     steps = [("frontend_alone", frontend_alone)]
     if "parity" in only:
@@ -279,7 +311,9 @@ def run_parity(lis, domain, mcap, gt, graph_params, ate_off, work, log) -> dict:
     rc_ma = stop(ma)
     graph_traj = lis.path
     ate_ros = ate(graph_traj, gt) if graph_traj is not None and len(graph_traj) >= 3 else None
-    return {"ate_sim3_m_graph": ate_ros, "ate_sim3_m_offline": ate_off,
+    frame = gravity_and_scale(graph_traj, gt) if ate_ros is not None else {}
+    return {"ate_sim3_m_graph": ate_ros, "ate_sim3_m_offline": ate_off, **frame,
+            "vi_state_graph": diag.get("vi_state"),
             "rel_diff": (abs(ate_ros - ate_off) / ate_off) if ate_ros is not None and ate_off else None,
             "odometry_frames": len(lis.odom), "replay_wall_s": wall, "renders": lis.renders,
             "graph_corrections": {k: diag.get(k) for k in ("writeback_policy", "corrections_received",

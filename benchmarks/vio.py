@@ -12,8 +12,9 @@ Experiments (``--exp``, comma list):
   frames of the angle between estimated and true gravity in the camera frame), the Sim(3) ATE of the
   same frames with and without the IMU and their ratio, fusion time per keyframe (ms) and the
   front end's frames per second with and without the IMU.
-* ``rates``: the room (seed 0) with the IMU thinned to 100 Hz and to 50 Hz, 5 % of the readings
-  dropped at random and one 0.2 s gap at 4 s: initialised or not, scale error, SE(3) ATE.
+* ``rates``: the room (seed 0) with the IMU recorded at 100 Hz and at 50 Hz, 5 % of the readings
+  dropped at random and one 0.2 s gap at 4 s (``vings sim --imu-rate --imu-drop --imu-gap``):
+  initialised or not, scale error, SE(3) ATE.
 * ``td``: the room (``--seeds``) simulated with a camera-IMU offset of 15 ms (``vings sim
   --imu-td 0.015``), configured 0: the online estimate, and the ATE with and without estimation.
 * ``outage``: a 1 s vision outage (lens covered, ``vings sim --blind``) in the room (8-9 s) and the
@@ -54,7 +55,7 @@ def _sim(name: str, frames: int, seed: int, tag: str = "", **kw) -> Path:
     return d
 
 
-def run_frontend(path: Path, use_imu: bool, imu_filter=None, cfg=None, keep_fe: bool = False) -> dict:
+def run_frontend(path: Path, use_imu: bool, cfg=None, keep_fe: bool = False) -> dict:
     """The front end over a recording (IMU readings merged in time order), with or without the
     fusion (``cfg``: its :class:`ViConfig`); trajectory figures against the truth (``keep_fe``:
     the front end and the truth in ``_fe``, ``_gt``)."""
@@ -72,13 +73,12 @@ def run_frontend(path: Path, use_imu: bool, imu_filter=None, cfg=None, keep_fe: 
         if vio is None:
             raise RuntimeError(why)
     fe = Frontend(FrontendConfig(), cal.camera, vio=vio)
-    imu_keep = imu_filter(src.imu_samples()) if imu_filter else None
     t0 = time.perf_counter()
     for item in src.stream():
         if isinstance(item, Frame):
             fe.process(item)
             fe.pop_keyframes()
-        elif vio is not None and (imu_keep is None or item.stamp_ns in imu_keep):
+        elif vio is not None:
             fe.add_imu(item)
     fe.finish()
     wall = time.perf_counter() - t0
@@ -123,23 +123,12 @@ def exp_sim(a) -> dict:
     return out
 
 
-def _thin(rate_hz: float, drop: float, gap=(4.0, 4.2), seed: int = 0):
-    def f(samples):
-        rng = np.random.default_rng(seed)
-        st = np.array([s.stamp_ns for s in samples], np.int64)
-        t = (st - st[0]) * 1e-9
-        step = max(int(round(200.0 / rate_hz)), 1)
-        keep = (np.arange(len(st)) % step == 0) & (rng.random(len(st)) >= drop)
-        keep &= ~((t >= gap[0]) & (t < gap[1]))
-        return set(st[keep].tolist())
-    return f
-
-
 def exp_rates(a) -> dict:
-    d = _sim("room", a.room_frames, 0)
     out = {}
     for hz in (100.0, 50.0):
-        r = run_frontend(d, True, _thin(hz, 0.05))
+        stream = _stream(rate_hz=hz, drop=0.05, gaps=((4.0, 4.2),))
+        d = _sim("room", a.room_frames, 0, f"_imu{int(hz)}", imu=stream)
+        r = run_frontend(d, True)
         out[f"{int(hz)}hz"] = {k: r.get(k) for k in ("vi_state", "init_s", "scale_error", "ate_se3_m",
                                                       "ate_se3_pct", "gravity_err_deg_median", "vi_events")}
         log(f"room IMU {hz:g} Hz, 5% dropped, 0.2 s gap: {out[f'{int(hz)}hz']}")

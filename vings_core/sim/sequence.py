@@ -199,8 +199,8 @@ def generate(scene_name: str, out_dir, frames: Optional[int] = None, width: int 
         raise ConfigError(f"slow start must be >= 0 s, got {slow_start_s}")
     if not (np.isfinite(speed_factor) and 0.1 <= speed_factor <= 10.0):
         raise ConfigError(f"speed factor must be in [0.1, 10], got {speed_factor}")
-    if imu is not None:
-        imu.validate()
+    stream = imu or ImuStreamOptions()
+    stream.validate()
     if blind is not None:
         b0, b1 = (float(v) for v in blind)
         if not (np.isfinite(b0) and np.isfinite(b1) and 0 <= b0 < b1):
@@ -230,16 +230,15 @@ def generate(scene_name: str, out_dir, frames: Optional[int] = None, width: int 
         dirs = _make_mav0(tmp / "mav0")
         stamps = T0_NS + frame_ns
         stats = _render_all(scene, camera, T_wc, t_frames, stamps, dirs, progress, blind)
-        st = imu or ImuStreamOptions()
-        if st != ImuStreamOptions():
-            notes.append(f"IMU recorded at {st.rate_hz:g} Hz, time offset td {1e3 * st.td_s:g} ms "
-                         f"(t_imu = t_cam + td), {100 * st.drop:g} % of readings dropped, gaps "
-                         f"{list(st.gaps)} s")
+        if stream != ImuStreamOptions():
+            notes.append(f"IMU recorded at {stream.rate_hz:g} Hz, time offset td {1e3 * stream.td_s:g} ms "
+                         f"(t_imu = t_cam + td), {100 * stream.drop:g} % of readings dropped, gaps "
+                         f"{list(stream.gaps)} s")
         if blind is not None:
             notes.append(f"lens covered from {blind[0]:g} s to {blind[1]:g} s: "
                          f"{stats['blind_frames']} black frames")
         _write_camera_files(dirs, stamps, camera, scene.T_bc, fps)
-        _write_imu_files(dirs, T0_NS + imu_ns, imu_data, gt, noise_cfg, imu or ImuStreamOptions(), rng)
+        _write_imu_files(dirs, T0_NS + imu_ns, imu_data, gt, noise_cfg, stream, rng)
 
         summary = summarize(scene, camera, gt, t_frames, fps, seed, noise, stats, notes)
         mcap_path = None

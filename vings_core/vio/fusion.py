@@ -28,7 +28,8 @@ from typing import TYPE_CHECKING, Optional
 import numpy as np
 
 from ..errors import ConfigError
-from ..geometry import sim3_apply_to_pose
+from ..eval.align import umeyama
+from ..geometry import sim3, sim3_apply_to_pose, sim3_compose
 from ..mapping.history import scale_keyframe_depth
 from ..types import Calibration, ImuSample, Keyframe
 from .align import Alignment, align, excitation
@@ -457,7 +458,7 @@ class ViFusion:
         sm.optimize(c.smoother_iters)
         self._marginals = sm.velocity_bias_covariance(sm.window_stamps()[-1])
         win = {k.stamp for k in fe.window}
-        fe.set_poses({s: sm.estimate(s).T_wb @ self.T_bc for s in sm.window_stamps() if s in win})
+        self._write_back(fe, {s: sm.estimate(s).T_wb @ self.T_bc for s in sm.window_stamps() if s in win})
         # keyframes that left the window take their visual information into the prior
         leaving = dict(fe.win.leaving)
         fe.win.leaving.clear()
@@ -465,6 +466,31 @@ class ViFusion:
             old = sm.window_stamps()[0]
             inc = leaving.get(old)
             sm.marginalize_oldest(None if inc is None else _gtsam_system(inc, c.visual_weight))
+
+    def _write_back(self, fe: "Frontend", new: dict[int, np.ndarray]) -> None:
+        """Move the window's keyframes to the smoother's poses ``new`` (``T_wc``). The smoother
+        also corrects the window's scale (by 1-2 % in the first keyframes after the alignment);
+        as rigid moves that correction would reach the map as keyframes moving apart while their
+        Gaussians keep their size and distance to them. So the scale ``s`` of the similarity that
+        best maps the window's old camera centres onto the new ones (Umeyama) travels with every
+        keyframe's move: ``C_k = [s R_k, p_new - s R_k p_old]`` with ``R_k = R_new R_old^T``, which
+        takes the keyframe exactly to its new pose and scales its content about it by ``s``;
+        the moves go to the pose exchange as similarities (:meth:`take_similarities`)."""
+        stamps = sorted(new)
+        old = {t: fe.pose(t) for t in stamps}
+        P_old = np.array([old[t][:3, 3] for t in stamps])
+        P_new = np.array([new[t][:3, 3] for t in stamps])
+        if len(stamps) < 3 or np.linalg.norm(P_old - P_old.mean(0), axis=1).max() < 1e-9:
+            fe.set_poses(new)
+            return
+        sc = umeyama(P_old, P_new, with_scale=True)[0]
+        incs = {}
+        for t in stamps:
+            R = new[t][:3, :3] @ old[t][:3, :3].T
+            incs[t] = sim3(R, new[t][:3, 3] - sc * R @ old[t][:3, 3], sc)
+        fe.apply_increments(incs)
+        for t, C in incs.items():
+            self.similarities[t] = sim3_compose(C, self.similarities[t]) if t in self.similarities else C
 
     def _smooth(self, fe: "Frontend") -> None:
         sm = self.smoother
