@@ -45,6 +45,7 @@ LIBRARY_SECTIONS: dict[str, str] = {
     "mapping": "vings_core.mapping.config:MapperConfig",
     "run": "vings_core.pipeline:RunConfig",
     "exchange": "vings_core.exchange:ExchangeConfig",
+    "loop": "vings_core.loop:LoopConfig",
 }
 
 #: parameters rclpy itself declares or reads (``qos_overrides.*`` too): not a VINGS section

@@ -40,7 +40,7 @@ from .io.base import Source, SourceOptions
 from .keyframe_queue import KeyframeQueue
 from .profiling import timed, timed_iter
 from .stages import MAPPER_SOURCE
-from .stages import map_keyframe
+from .stages import map_keyframe, retrain_after_loop
 from .types import POSED_STATES, Frame, Keyframe, TrackState, Trajectory
 from .util import nice_current_thread
 
@@ -228,9 +228,11 @@ class SlamRunner:
                  run_cfg: Optional[RunConfig] = None, progress: bool = True,
                  on_frame: Optional[Callable[[dict], None]] = None,
                  stages: tuple[RunnerStage, ...] = (), exchange_cfg: Optional[ExchangeConfig] = None,
-                 vio_cfg: Optional["ViConfig"] = None) -> None:
+                 vio_cfg: Optional["ViConfig"] = None, loop_cfg: Optional["LoopConfig"] = None) -> None:
         """``vio_cfg``: the visual-inertial fusion's configuration (default: section ``vio`` of the
-        params file; ``enabled=False`` is ``--no-imu``)."""
+        params file; ``enabled=False`` is ``--no-imu``). ``loop_cfg``: the loop closer's (default:
+        section ``loop``; ``enabled=False`` is ``--no-loop``); the loop closer runs in the mapper's
+        thread after each mapped keyframe, its renders from the map as trained."""
         from .frontend import Frontend, FrontendConfig
         from .mapping import Mapper, MapperConfig
         from .vio.config import ViConfig
@@ -285,6 +287,15 @@ class SlamRunner:
         self.keeper = None if self.frontend is None else PoseKeeper(self.frontend, self.xcfg)
         self.follower = PoseFollower(MAPPER_SOURCE, self.mapper)
         self.stages = tuple(stages)
+        from .loop import LoopCloser, LoopConfig
+        from .vio.config import ViState
+        lcfg = loop_cfg or load_section(LoopConfig, "loop", params_file)
+        self.loop: Optional[LoopCloser] = None
+        if lcfg.enabled and self.frontend is not None:
+            self.loop = LoopCloser(lcfg, render=self._loop_render,
+                                   metric=lambda: self.vio is not None and self.vio.state == ViState.VISUAL_INERTIAL)
+        self._loop_ack = 0
+        self.retrains: list[dict] = []
         self.out.prepare()      # after the configuration is known to be valid, before any work
         self._queue.discard_leftovers()     # of a killed earlier run (runs do not resume)
 
@@ -303,6 +314,24 @@ class SlamRunner:
             self.mapper.save_checkpoint(self.out.partial_checkpoint_path)
             self._partial_ckpt = True
 
+    def _loop_render(self, T_wc: np.ndarray, camera, older_than: Optional[int]) -> Optional[dict]:
+        """The loop closer's renders (mapper thread): the map from ``T_wc``, Gaussians of keyframes
+        older than ``older_than`` only."""
+        if not self.mapper.num_gaussians:
+            return None
+        return self.mapper.render(T_wc, camera, owners_before=older_than)
+
+    def _close_loops(self, kf: Keyframe) -> None:
+        """The loop closer after the keyframe was mapped; its correction goes to the keeper."""
+        if self.loop is None or self._abort:
+            return
+        with timed("loop", "keyframe (total)"):
+            self.loop.add_keyframe(kf)
+        batch = self.loop.poll()
+        if batch is not None:
+            with self._lock:
+                self._to_keeper.append(batch)
+
     def _backlog(self) -> int:
         """Keyframes waiting for the mapper thread (0 in sync mode)."""
         return self._queue.keyframes
@@ -311,11 +340,21 @@ class SlamRunner:
         if kind == "kf":
             try:
                 self._map_keyframe(item)
+                self._close_loops(item)
             finally:
                 if self._kf_queued is not None:
                     self._kf_queued.release()
         else:  # "poses": the keeper's batch (front-end moves, accepted and refused increments)
             self.follower.receive(item)
+            if self.loop is not None:
+                self.loop.receive(item)
+                lc = self.loop.cfg
+                self._loop_ack, re = retrain_after_loop(self.mapper, item, self._loop_ack, lc.retrain_iters,
+                                                        lc.retrain_max_s, lc.prune_after)
+                if re is not None:
+                    self.retrains.append(re)
+                    log.info("loop correction: map retrained %d iterations over %d views in %.2f s, %d pruned",
+                             re["retrain_iters"], re["retrain_views"], re.get("retrain_s", 0.0), re["loop_pruned"])
 
     def _mapper_loop(self) -> None:
         nice_current_thread(self.cfg.mapper_nice)
@@ -630,6 +669,10 @@ class SlamRunner:
                 log.warning("%d of %d frames have no pose: %s", n_unposed, n_frames, why)
         if self.frontend is not None:
             m.update(self._vi_metrics())
+        if self.loop is not None:
+            ls = self.loop.summary()
+            m.update(loops_accepted=ls["loops_accepted"], loop_candidates_rejected=ls["loop_candidates_rejected"],
+                     loop_detect_ms_mean=ls["loop_detect_ms_mean"])
         # with gt_poses the trajectory IS the ground truth: no ATE/RPE to report (null)
         gt = None
         if not self.cfg.gt_poses:
@@ -658,7 +701,14 @@ class SlamRunner:
         images, renders = self._image_metrics(kf_traj, traj)
         m.update(images)
         return {"traj": traj, "kf_traj": kf_traj, "metrics": m, "renders": renders, "segments": segments,
-                "segment_trajs": seg_trajs}
+                "segment_trajs": seg_trajs, "loops": self.loop_report()}
+
+    def loop_report(self) -> Optional[dict]:
+        """``loops.json``'s content (None without a loop closer)."""
+        if self.loop is None:
+            return None
+        return {"candidates": self.loop.records, "corrections": self.loop.corrections,
+                "retrains": self.retrains, "summary": self.loop.summary()}
 
     def _vi_metrics(self) -> dict:
         """``vi_*``, ``scale_observable``, biases and the time offset for metrics.json."""
@@ -684,6 +734,8 @@ class SlamRunner:
             out.write_keyframes(final["kf_traj"], staged=True)
             if final["segments"] is not None:
                 out.write_segments(final["segments"], final["segment_trajs"], staged=True)
+            if final["loops"] is not None:
+                out.write_loops(final["loops"], staged=True)
             self.mapper.save_ply(out.staging_path(out.map_path))
             self.mapper.save_checkpoint(out.staging_path(out.checkpoint_path))
             for name, rgb in final["renders"].items():

@@ -53,3 +53,18 @@ def map_keyframe(mapper, follower: PoseFollower, kf: Keyframe, refine: bool = Tr
     moved = {int(s): pose_increment(T, base[s]) for s, T in refined.items()
              if s in base and _differs(T, base[s])}
     return stats, follower.send(moved, seq_hint=int(kf.stamp_ns))
+
+
+def retrain_after_loop(mapper, batch: IncrementBatch, last_ack: int, iters: int, max_s: float,
+                       prune: bool = True, source: str = "loop_closer") -> tuple[int, Optional[dict]]:
+    """The mapper's follow-up of a loop correction: when a keeper batch (already applied) is the
+    first to acknowledge a newer batch of the loop closer (``source``; ``last_ack``: the last one
+    acknowledged before), a short retrain of the revisited region and a prune by contribution
+    (:meth:`~vings_core.mapping.Mapper.retrain_region`). Returns the new last acknowledgement and
+    the retrain's counts (None when there was none)."""
+    ack = int(batch.acks.get(source, 0))
+    if ack <= last_ack:
+        return last_ack, None
+    if not batch.increments or iters <= 0:
+        return ack, None
+    return ack, mapper.retrain_region(iters, max_s, prune)

@@ -7,6 +7,7 @@ An output folder holds::
     keyframes.tum    the keyframes' final poses, cam0 T_wc, TUM
     map.ply          the 2D Gaussian map (written by the mapper, not here)
     metrics.json     one object with exactly the keys of METRIC_KEYS (null where not applicable)
+    loops.json       every loop candidate checked (stamps, figures, verdict, reason) and each correction
     renders/         PNG renders (uint8 RGB)
 
 Every file is written atomically (temp file + rename).
@@ -35,6 +36,7 @@ KEYFRAMES_FILE = "keyframes.tum"
 MAP_FILE = "map.ply"
 SEGMENTS_FILE = "segments.json"
 SEGMENTS_DIR = "trajectory_segments"
+LOOPS_FILE = "loops.json"
 METRICS_FILE = "metrics.json"
 RENDERS_DIR = "renders"
 CHECKPOINT_FILE = "checkpoint.pt"
@@ -56,10 +58,11 @@ METRIC_KEYS = (
     "frames_unposed", "frames_unposed_reason", "segments", "ate_segments_m",
     "vi_state", "vi_initialised_at_s", "scale_observable", "acc_bias", "gyro_bias", "td_s",
     "td_estimates", "imu_only_frames", "vi_error",
+    "loops_accepted", "loop_candidates_rejected", "loop_detect_ms_mean",
 )
 _INT_KEYS = {"frames", "frames_tracked", "keyframes", "num_gaussians", "keyframes_light",
              "queue_peak_keyframes", "queue_spilled", "frames_unposed", "segments", "td_estimates",
-             "imu_only_frames"}
+             "imu_only_frames", "loops_accepted", "loop_candidates_rejected"}
 _STR_KEYS = {"frames_unposed_reason", "vi_state", "vi_error"}
 _BOOL_KEYS = {"scale_observable"}
 _LIST_KEYS = {"ate_segments_m", "acc_bias", "gyro_bias"}
@@ -206,10 +209,13 @@ class RunOutput:
         """At the end of a run, before its final files: remove what would make the previous run's
         outputs look like this run's: ``metrics.json`` (written last: its presence marks a
         complete run), the runner's renders ``renders/kf_*.png`` (other files there are not
-        ours and stay) and the segment trajectories ``trajectory_segments/segment_*.tum``. The other files are replaced when written."""
+        ours and stay), the segment trajectories ``trajectory_segments/segment_*.tum`` and
+        ``loops.json`` (a run without the loop closer has none). The other files are replaced when
+        written."""
         try:
-            if self.metrics_path.exists():
-                self.metrics_path.unlink()
+            for p in (self.metrics_path, self.out_dir / LOOPS_FILE):
+                if p.exists():
+                    p.unlink()
             if self.renders_dir.is_dir():
                 for p in self.renders_dir.glob(f"{RUN_RENDER_PREFIX}*.png"):
                     p.unlink()
@@ -319,6 +325,13 @@ class RunOutput:
             p = self.out_dir / SEGMENTS_DIR / f"segment_{int(k)}.tum"
             write_tum(self.staging_path(p) if staged else p, traj)
         atomic_write_text(path, json.dumps({"segments": segments}, indent=2, allow_nan=False) + "\n")
+        return path
+
+    def write_loops(self, loops: dict, staged: bool = False) -> Path:
+        """``loops.json``: ``{"candidates": [...], "corrections": [...], "summary": {...}}``."""
+        path = self.out_dir / LOOPS_FILE
+        atomic_write_text(self.staging_path(path) if staged else path,
+                          json.dumps(_clean(loops, LOOPS_FILE), indent=2, allow_nan=False) + "\n")
         return path
 
     def write_metrics(self, metrics: dict) -> dict:

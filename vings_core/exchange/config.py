@@ -30,7 +30,10 @@ class ExchangeConfig:
     refused (nothing to check them against). A loop closure's correction fails such a gate by
     design (it moves keyframes by far more than their noise), so its writer is ``all``.
     ``extra_writers``: names of further writers the keeper node listens to (topic
-    ``/vings/exchange/<name>``), besides ``mapper`` and ``loop_closer``.
+    ``/vings/exchange/<name>``), besides ``mapper`` and ``loop_closer``. ``jump_writers``: writers
+    whose batches are corrections of the whole past (a loop closure): the keeper also moves every
+    frame and keyframe newer than the newest one in such a batch by that keyframe's increment
+    (its window, velocities and biases with it), so the present follows the corrected past.
     """
 
     mapper: WritebackPolicy = WritebackPolicy.CONSISTENT
@@ -38,14 +41,19 @@ class ExchangeConfig:
     other: WritebackPolicy = WritebackPolicy.ALL
     confidence: float = 0.99
     extra_writers: list[str] = field(default_factory=list)
+    jump_writers: list[str] = field(default_factory=lambda: ["loop_closer"])
 
     def validate(self) -> None:
         if not 0 < self.confidence < 1:
             raise ValueError(f"confidence must be in (0, 1), got {self.confidence}")
-        for name in self.extra_writers:
+        for name in [*self.extra_writers, *self.jump_writers]:
             if not name or not name.replace("_", "").isalnum() or name == KEEPER:
                 raise ValueError(f"extra_writers: {name!r} is not a valid writer name (letters, digits, _; "
                                  f"not {KEEPER!r})")
+
+    def jumps(self, source: str) -> bool:
+        """Whether ``source``'s batches carry forward to newer frames (see ``jump_writers``)."""
+        return source in self.jump_writers
 
     def policy(self, source: str) -> WritebackPolicy:
         """The write-back policy for increments from ``source``."""

@@ -38,7 +38,7 @@ class PoseKeeper:
         self._acks_sent: dict[str, int] = {}
         self._version = 0                       # owner's kf_pose_version at the last outgoing()
         self._recheck: set[int] = set()
-        self.stats = dict(corrections=0, applied=0, rejected=0, duplicates=0, tests=0, tests_failed=0,
+        self.stats = dict(corrections=0, applied=0, rejected=0, duplicates=0, jumps=0, tests=0, tests_failed=0,
                           last_q=None, last_q_limit=None)
 
     def keyframe_sent(self, stamp_ns: int, T_wc: np.ndarray) -> None:
@@ -64,7 +64,11 @@ class PoseKeeper:
         if ok:
             for s, C in ok.items():
                 self.accepted[s] = sim3_compose(C, self.accepted[s]) if s in self.accepted else C
-            self.owner.apply_increments(ok)
+            if self.cfg.jumps(batch.source) and callable(getattr(self.owner, "apply_jump", None)):
+                self.owner.apply_jump(ok)
+                self.stats["jumps"] += 1
+            else:
+                self.owner.apply_increments(ok)
         self.stats["applied"] += len(ok)
         self.stats["rejected"] += len(incs) - len(ok)
         return ok

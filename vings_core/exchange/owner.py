@@ -34,3 +34,8 @@ class KeeperOwner(PoseOwner, Protocol):
     def pose_system(self) -> Optional[object]:
         """The last window BA's Schur-reduced pose system
         (:class:`~vings_core.frontend.ba.PoseSystem`), or None."""
+
+    def apply_jump(self, increments: dict[int, np.ndarray]) -> object:
+        """Apply a correction of the past (a jump writer's batch, ``ExchangeConfig.jump_writers``)
+        as :meth:`apply_increments` does, and move every frame newer than the newest stamp in it by
+        that stamp's increment. An owner without it takes such batches as plain increments."""

@@ -102,6 +102,17 @@ class PoseBuffer:
                 rec.ref, rec.T_rel = None, T_cw
         return kf_T_cw
 
+    def stamps_after(self, stamp_ns: int) -> list[int]:
+        """Processed frames newer than ``stamp_ns`` whose pose does not follow a reference keyframe
+        (keyframes, and frames without one), oldest first; the cost grows with their number only."""
+        out = []
+        for s in reversed(self._order):
+            if s <= stamp_ns:
+                break
+            if s in self._kf_T_cw or self._records[s].ref is None:
+                out.append(s)
+        return out[::-1]
+
     def pose(self, stamp_ns: int) -> np.ndarray:
         """Current best ``T_wc`` of a processed frame (4x4 float64)."""
         if int(stamp_ns) not in self._records:

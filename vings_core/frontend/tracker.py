@@ -289,6 +289,27 @@ class Frontend:
                                          tol=1e-6, error=InputError)
         self.set_poses({s: sim3_apply_to_pose(C, self.pose(s)) for s, C in checked.items()})
 
+    def apply_jump(self, increments: dict[int, np.ndarray]) -> None:
+        """A correction of the past (a loop closure): :meth:`apply_increments`, and every frame and
+        keyframe newer than the newest stamp in ``increments`` moves by that stamp's increment
+        (keyframes still in the window and not emitted, frames tracked since). With the IMU fused,
+        the smoother's states move with their keyframes and its prior is re-anchored
+        (:meth:`~vings_core.vio.fusion.ViFusion.world_moved`). The window's pose system is
+        re-linearised at the moved poses. Subscribers see the jump in the next frame's pose."""
+        if not increments:
+            return
+        newest = max(int(s) for s in increments)
+        C = np.asarray(increments[newest], np.float64)
+        moved = {int(s): np.asarray(v, np.float64) for s, v in increments.items()}
+        for s in self.buffer.stamps_after(newest):
+            moved.setdefault(s, C)
+        self.apply_increments(moved)
+        if self.vio is not None:
+            self.vio.world_moved(moved)
+        if len(self.win.keyframes) >= 2:
+            self.win.after_change(None)
+        self.stats["jumps"] += 1
+
     def status(self) -> dict:
         """State, reason and counters (plain data, for logs and diagnostics)."""
         vi = self.vio.status() if self.vio is not None else {"vi_state": "visual-only"}

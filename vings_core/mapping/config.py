@@ -111,6 +111,9 @@ class MapperConfig:
                                        # contribution (sum e_t / sum c_t) exceeds the window keyframes'
                                        # mean L1 (small splats where the render is still wrong);
                                        # default with sc_storage 2.7 (docs/mapping.md)
+    loop_prune_contribution: float = 0.01  # after a loop correction's retrain: an active Gaussian in
+                                       # front of a retrained view whose summed contribution
+                                       # (sum alpha T) over those views is below this is pruned
 
     # ---- storage tiers (paper "GPU-CPU transfer")
     delta_k: int = 8                   # tier update every n keyframes
@@ -195,6 +198,8 @@ class MapperConfig:
             raise ValueError(f"sc_view_floor must be in [0, 1], got {self.sc_view_floor}")
         if self.max_active < 1:
             raise ValueError("max_active must be >= 1")
+        if not self.loop_prune_contribution >= 0:
+            raise ValueError(f"loop_prune_contribution must be >= 0, got {self.loop_prune_contribution}")
         if not (self.passive_memory_mb >= 0 and self.history_memory_mb >= 0):
             raise ValueError("passive_memory_mb and history_memory_mb must be >= 0 (MB)")
         if len(self.adam_betas) != 2:

@@ -195,6 +195,52 @@ class Mapper:
                    num_stable=int(self.gm.stable.sum()), **self.counters)
         return out
 
+    def retrain_region(self, iters: int, max_s: float, prune: bool = True) -> dict:
+        """After a loop correction: ``iters`` training iterations (at most ``max_s`` seconds) cycling
+        over the window keyframes and the history keyframes within ``tau`` of the newest one (the
+        revisited region, where the corrected first visit and the new pass overlap); then
+        (``prune``) remove the active Gaussians that lie in front of at least one of those views
+        and contribute to none of them (their contribution score ``sum alpha T`` over the views is
+        below ``loop_prune_contribution``): surfaces left doubled by the drift. Returns counts."""
+        t0 = time.perf_counter()
+        st = self.state
+        stamps = [kf.stamp_ns for kf in st.window] + self.trainer.history_near()
+        out = dict(retrain_iters=0, retrain_views=len(stamps), loop_pruned=0)
+        if not stamps or len(self.gm) == 0:
+            return out
+        order = [stamps[int(i)] for i in torch.randperm(len(stamps), generator=st.rng)]
+        win = {kf.stamp_ns: kf for kf in st.window}
+        views: dict[int, Keyframe] = {}
+        for it in range(int(iters)):
+            if time.perf_counter() - t0 > max_s or len(self.gm) == 0:
+                break
+            s = order[it % len(order)]
+            if s not in views:
+                kf = win.get(s) or self.trainer.history_at(s)
+                if kf is None:
+                    continue
+                views[s] = kf
+            self.trainer.step(views[s])
+            out["retrain_iters"] += 1
+        if prune and views and len(self.gm):
+            with torch.no_grad():
+                seen = torch.zeros(len(self.gm), dtype=torch.bool)
+                used = torch.zeros(len(self.gm), dtype=torch.float32)
+                for kf in views.values():
+                    T_cw = torch.linalg.inv(kf.T_wc.to(torch.float64))
+                    r = self.state.rasterize(self.gm, T_cw, kf.camera, sample_ratio=1.0)
+                    used += r.contribution.to(torch.float32)
+                    seen |= _in_view(self.gm.means, T_cw, kf.camera)
+                drop = seen & (used < self.cfg.loop_prune_contribution)
+                n = int(drop.sum())
+                if n:
+                    st.gm = self.gm.remove(drop)
+                    self.counters["pruned"] += n
+                out["loop_pruned"] = n
+        self.timings["train_s"] += time.perf_counter() - t0
+        out["retrain_s"] = round(time.perf_counter() - t0, 3)
+        return out
+
     def refine_poses(self, iters: Optional[int] = None,
                      mode: Optional[RefineMode | str] = None) -> dict[int, np.ndarray]:
         """Single-to-multi pose refinement; returns the refined ``{stamp_ns: T_wc}`` of all keyframes.
@@ -221,11 +267,14 @@ class Mapper:
         return self.keyframe_poses()
 
     @torch.no_grad()
-    def render(self, T_wc: np.ndarray, camera: CameraModel, include_passive: bool = True) -> dict:
+    def render(self, T_wc: np.ndarray, camera: CameraModel, include_passive: bool = True,
+               owners_before: Optional[int] = None) -> dict:
         """Render the map from camera-to-world ``T_wc`` with ``camera``.
 
         Uses the active set plus (``include_passive``) the passive Gaussians whose ID(g) keyframe is
-        within ``tau`` of the camera (read, not moved). Returns numpy arrays: ``color`` (H, W, 3)
+        within ``tau`` of the camera (read, not moved); with ``owners_before`` (a stamp, ns) only the
+        Gaussians whose ID(g) keyframe is older than it (the map as an earlier visit left it, for
+        loop verification). Returns numpy arrays: ``color`` (H, W, 3)
         float32 in [0, 1]; ``depth`` (H, W) expected z-depth (m, 0 where empty); ``normal`` (H, W, 3)
         unit normals in the camera frame (0 where empty); ``alpha`` (H, W) accumulated opacity.
         """
@@ -235,6 +284,8 @@ class Mapper:
             extra = self._peek_passive(T_wc[:3, 3], self.cfg.tau)
             if extra is not None:
                 gm = GaussianMap.concat([gm, extra.to(self.device)])
+        if owners_before is not None:
+            gm = gm.index(torch.nonzero(gm.kf_id < int(owners_before)).flatten())
         out = self.state.rasterize(gm, torch.from_numpy(np.linalg.inv(T_wc)), camera, sample_ratio=1.0)
         a = out.alpha
         nrm = out.normal / torch.linalg.norm(out.normal, dim=-1, keepdim=True).clamp_min(1e-12)
@@ -392,6 +443,15 @@ class Mapper:
         """The active map, then the passive store one chunk at a time (moved by pending pose
         changes): :meth:`all_gaussians` without gathering it."""
         return itertools.chain((self.gm,), self.passive.iter_moved(self.state.poses))
+
+
+def _in_view(means: torch.Tensor, T_cw: torch.Tensor, camera: CameraModel) -> torch.Tensor:
+    """``(N,)`` bool: centres in front of the camera (z > 0) that project inside the image."""
+    p = means.to(torch.float64) @ T_cw[:3, :3].T + T_cw[:3, 3]
+    z = p[:, 2]
+    u = camera.fx * p[:, 0] / z.clamp_min(1e-9) + camera.cx
+    v = camera.fy * p[:, 1] / z.clamp_min(1e-9) + camera.cy
+    return (z > 0) & (u >= 0) & (u < camera.width) & (v >= 0) & (v < camera.height)
 
 
 def _owner_motion(T_old: np.ndarray, T_new: np.ndarray, scale: float) -> np.ndarray:

@@ -147,13 +147,24 @@ class Trainer:
             return None
         if float(torch.rand((), generator=st.rng)) >= cfg.history_ratio:
             return None
+        cand = self.history_near()
+        if not cand:
+            return None
+        return self.history_at(cand[int(torch.randint(len(cand), (), generator=st.rng))])
+
+    def history_near(self) -> list[int]:
+        """Stamps of the history keyframes whose camera is within ``tau`` of the newest keyframe."""
+        st = self.st
+        if not st.history or not st.window:
+            return []
         cur = st.poses[st.window[-1].stamp_ns][:3, 3]
         stamps = st.history.stamps()
         pos = np.stack([st.poses[s][:3, 3] for s in stamps])
-        cand = np.flatnonzero(np.linalg.norm(pos - cur, axis=1) < cfg.tau)
-        if not len(cand):
-            return None
-        s = stamps[int(cand[int(torch.randint(len(cand), (), generator=st.rng))])]
+        return [stamps[int(i)] for i in np.flatnonzero(np.linalg.norm(pos - cur, axis=1) < st.cfg.tau)]
+
+    def history_at(self, s: int) -> Optional[Keyframe]:
+        """History keyframe ``s`` expanded at its current pose (None: its spill file was lost)."""
+        st = self.st
         rec = st.history.get(s)     # None: its spill file was lost (reported); skip this turn
         if rec is None:
             return None
@@ -163,12 +174,14 @@ class Trainer:
             scale_keyframe_depth(kf, k)
         return kf
 
-    def step(self) -> dict:
-        """One training iteration; returns its loss terms and the render's PSNR (dB)."""
+    def step(self, given: Optional[Keyframe] = None) -> dict:
+        """One training iteration; returns its loss terms and the render's PSNR (dB). ``given``: a
+        keyframe to train on instead of the sampled one (taken like a history keyframe: the window
+        scores are left alone)."""
         st = self.st
         cfg = st.cfg
         gm = st.gm
-        hist = self.history_keyframe()
+        hist = given if given is not None else self.history_keyframe()
         kf = hist if hist is not None else self.next_keyframe(self.queue)
         # a coarse iteration (cfg.coarse_fraction of the window's): the keyframe at 1/coarse_factor
         # resolution; like a history keyframe it leaves the scores and loss maps alone

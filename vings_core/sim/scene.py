@@ -17,7 +17,8 @@ from ..geometry import np_pose, np_so3_exp
 from ..types import CameraModel
 from .quads import QuadSet, box_quads, face_shade, make_quads
 from .textures import TextureAtlas, load_atlas
-from .trajectory import Motion, SineSum, plan_drive, random_handheld
+from .trajectory import (ROOM_ROUTES, ROUTE_MIN_DURATION_S, Motion, RetraceMotion, SineSum, plan_drive,
+                         random_handheld, route_handheld)
 
 SCENES = ("room", "street")
 
@@ -68,7 +69,9 @@ class MovingBox:
 class Scene:
     """A synthetic scene. ``static``: quads that never move; ``movers``: moving boxes (their quads
     have ``obj`` = their index); ``motion``: the body trajectory; ``T_bc``: camera-to-body;
-    ``sky``: rays that miss everything see a sky gradient (else black); ``info``: a summary."""
+    ``sky``: rays that miss everything see a sky gradient (else black); ``info``: a summary;
+    ``revisit``: for a street loop with a retrace, the times (s, sequence clock) of its first pass
+    and of its second pass (set by :func:`~vings_core.sim.sequence.build_scene`), else None."""
 
     name: str
     seed: int
@@ -79,6 +82,7 @@ class Scene:
     T_bc: np.ndarray
     sky: bool
     info: dict = field(default_factory=dict)
+    revisit: Optional[dict] = None
 
     def quads_at(self, t: float = 0.0) -> QuadSet:
         """Every quad at time ``t`` (s): static ones then the moving boxes posed at ``t``."""
@@ -98,13 +102,20 @@ class Scene:
 def make_scene(name: str, seed: int = 0, **kw) -> Scene:
     """Build scene ``name`` ('room' or 'street') deterministically from ``seed``.
 
-    room: ``dynamic`` (bool). street: ``length_m`` (route length, m, default 400), ``loop`` (bool:
-    closed route back to the start), ``dynamic`` (bool).
+    room: ``dynamic`` (bool), ``route`` (one of :data:`ROOM_ROUTES`: ``'handheld'``, the default,
+    wanders around the room; ``'return'`` walks a lap back to the start pose; ``'oneway'`` turns
+    round at one end of the room and walks to the other, see
+    :func:`~vings_core.sim.trajectory.route_handheld`),
+    ``route_duration_s`` (s, return/oneway only: when the walk ends, default
+    :data:`ROOM_ROUTE_DURATION_DEFAULT_S`, at least 5 s).
+    street: ``length_m`` (route length, m, default 400), ``loop`` (bool: closed route back to the
+    start), ``retrace`` (with ``loop``: fraction in (0, 1] of the loop driven a second time, see
+    :class:`~vings_core.sim.trajectory.RetraceMotion`), ``dynamic`` (bool).
     """
     if name == "room":
-        allowed = {"dynamic"}
+        allowed = {"dynamic", "route", "route_duration_s"}
     elif name == "street":
-        allowed = {"dynamic", "length_m", "loop"}
+        allowed = {"dynamic", "length_m", "loop", "retrace"}
     else:
         raise ConfigError(f"unknown scene {name!r}; expected one of {SCENES}")
     bad = set(kw) - allowed
@@ -112,17 +123,54 @@ def make_scene(name: str, seed: int = 0, **kw) -> Scene:
         raise ConfigError(f"scene {name!r} does not take option(s) {sorted(bad)}; "
                           f"it takes {sorted(allowed)}")
     if name == "room":
-        return _make_room(seed, dynamic=bool(kw.get("dynamic", False)))
+        return _make_room(seed, dynamic=bool(kw.get("dynamic", False)), route=kw.get("route"),
+                          route_duration_s=kw.get("route_duration_s"))
     return _make_street(seed, length_m=kw.get("length_m"), loop=bool(kw.get("loop", False)),
-                        dynamic=bool(kw.get("dynamic", False)))
+                        dynamic=bool(kw.get("dynamic", False)), retrace=kw.get("retrace"))
+
+
+def check_retrace(retrace: Optional[float], loop: bool) -> Optional[float]:
+    """``retrace`` as a float in (0, 1] (or None); it needs a closed route (``loop``)."""
+    if retrace is None:
+        return None
+    try:
+        f = float(retrace)
+    except (TypeError, ValueError):
+        raise ConfigError(f"retrace must be a number in (0, 1], got {retrace!r}") from None
+    if not (np.isfinite(f) and 0.0 < f <= 1.0):
+        raise ConfigError(f"retrace must be in (0, 1] (the fraction of the loop driven again), got {retrace}")
+    if not loop:
+        raise ConfigError("--retrace needs --loop (it drives the closed loop a second time)")
+    return f
+
+
+def check_route(route: Optional[str]) -> str:
+    """The room route ``route`` (None: ``'handheld'``), one of :data:`ROOM_ROUTES`."""
+    if route is None:
+        return "handheld"
+    if route not in ROOM_ROUTES:
+        raise ConfigError(f"unknown room route {route!r}; expected one of {ROOM_ROUTES}")
+    return route
 
 
 # ------------------------------------------------------------------------------------ room
 
 ROOM_SIZE = (6.0, 5.0, 3.0)
+ROOM_ROUTE_DURATION_DEFAULT_S = 14.95    # s: 300 frames at 20 Hz
 
 
-def _make_room(seed: int, dynamic: bool) -> Scene:
+def _make_room(seed: int, dynamic: bool, route: Optional[str] = None,
+               route_duration_s: Optional[float] = None) -> Scene:
+    route = check_route(route)
+    if route == "handheld":
+        if route_duration_s is not None:
+            raise ConfigError("route_duration_s applies to the room's 'return' and 'oneway' routes only")
+    else:
+        d = ROOM_ROUTE_DURATION_DEFAULT_S if route_duration_s is None else float(route_duration_s)
+        if not (np.isfinite(d) and d >= ROUTE_MIN_DURATION_S):
+            raise ConfigError(f"room route {route!r} needs at least {ROUTE_MIN_DURATION_S:g} s of "
+                              f"motion, got {route_duration_s} s")
+        route_duration_s = d
     rng = np.random.default_rng(seed)
     atlas = load_atlas()
     T = atlas.index
@@ -162,11 +210,17 @@ def _make_room(seed: int, dynamic: bool) -> Scene:
         cube = box_quads((0, 0, 0), (0.35, 0.35, 0.35), 0.0, T("chelsea"), 0.35, rng, obj=1)
         movers.append(MovingBox(cube, ss(-2.1, [0.15], [1.3]), ss(-0.2, [1.0], [0.7]),
                                 ss(0.6, [0.25], [1.1]), ss(0.0, [1.2], [0.6])))
-    motion = random_handheld(rng, center=(0.0, 0.0), half_range=(1.4, 0.9), z_mean=1.4, speed=1.45)
+    if route == "handheld":
+        motion = random_handheld(rng, center=(0.0, 0.0), half_range=(1.4, 0.9), z_mean=1.4, speed=1.45)
+    else:
+        motion = route_handheld(rng, route, route_duration_s, center=(0.0, 0.0), half_range=(1.4, 0.9),
+                                z_mean=1.4)
+    info = {"room_size_m": list(ROOM_SIZE), "quads": len(static), "moving_objects": len(movers),
+            "route": route}
+    if route != "handheld":
+        info["route_duration_s"] = route_duration_s
     return Scene(name="room", seed=seed, static=static, movers=movers, atlas=atlas, motion=motion,
-                 T_bc=T_BC_DEFAULT.copy(), sky=False,
-                 info={"room_size_m": list(ROOM_SIZE), "quads": len(static),
-                       "moving_objects": len(movers)})
+                 T_bc=T_BC_DEFAULT.copy(), sky=False, info=info)
 
 
 # ------------------------------------------------------------------------------------ street
@@ -261,7 +315,9 @@ def _route_loop(length: float) -> tuple[np.ndarray, dict]:
     return nodes, _street_params(block)
 
 
-def _make_street(seed: int, length_m: Optional[float], loop: bool, dynamic: bool) -> Scene:
+def _make_street(seed: int, length_m: Optional[float], loop: bool, dynamic: bool,
+                 retrace: Optional[float] = None) -> Scene:
+    retrace = check_retrace(retrace, loop)
     rng = np.random.default_rng(seed)
     atlas = load_atlas()
     T = atlas.index
@@ -277,6 +333,9 @@ def _make_street(seed: int, length_m: Optional[float], loop: bool, dynamic: bool
         motion = plan_drive(corners, True, rng, turn_length=p["turn_length"], v_turn=v_turn,
                             v_cruise=v_cruise, ramp_length=p["ramp_length"])
         seg_nodes = np.vstack([nodes, nodes[:1]])
+        loop_length = float(motion.total_length)
+        if retrace is not None:
+            motion = RetraceMotion(motion, retrace)
     else:
         p = _street_params(BLOCK)
         nodes, corners = _route_open(rng, length, p)
@@ -287,11 +346,13 @@ def _make_street(seed: int, length_m: Optional[float], loop: bool, dynamic: bool
     S = p["block"]
     static, cells = _city(rng, atlas, seg_nodes, p)
     movers = _cars(rng, atlas, seg_nodes, p) if dynamic else []
+    info = {"block_m": S, "loop": loop, "route_length_m": motion.total_length,
+            "blocks": len(cells), "quads": len(static), "moving_objects": len(movers),
+            "v_turn_mps": v_turn, "v_cruise_mps": list(v_cruise)}
+    if loop:
+        info.update(loop_length_m=loop_length, retrace=retrace)
     return Scene(name="street", seed=seed, static=static, movers=movers, atlas=atlas, motion=motion,
-                 T_bc=T_BC_DEFAULT.copy(), sky=True,
-                 info={"block_m": S, "loop": loop, "route_length_m": motion.total_length,
-                       "blocks": len(cells), "quads": len(static), "moving_objects": len(movers),
-                       "v_turn_mps": v_turn, "v_cruise_mps": list(v_cruise)})
+                 T_bc=T_BC_DEFAULT.copy(), sky=True, info=info)
 
 
 def _city(rng, atlas: TextureAtlas, seg_nodes: np.ndarray, p: dict):

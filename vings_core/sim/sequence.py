@@ -35,8 +35,9 @@ from ..types import CameraModel
 from ..util import atomic_write_json
 from . import render_view
 from .imu import ImuData, ImuNoise, simulate_imu
-from .scene import SCENES, STREET_LENGTH_DEFAULT, STREET_MAX_LENGTH_M, Scene, default_camera, make_scene
-from .trajectory import MotionSample, SlowStartMotion, TimeScaledMotion
+from .scene import (SCENES, STREET_LENGTH_DEFAULT, STREET_MAX_LENGTH_M, Scene, check_retrace, check_route,
+                    default_camera, make_scene)
+from .trajectory import ROUTE_MIN_DURATION_S, MotionSample, SlowStartMotion, TimeScaledMotion
 
 log = logging.getLogger("vings.sim")
 
@@ -47,7 +48,8 @@ SUMMARY_NAME = "sim.json"
 
 
 def _plan(scene_name: str, frames: Optional[int], fps: float, loop: bool,
-          length_m: Optional[float], speed_factor: float = 1.0) -> tuple[Optional[int], Optional[float]]:
+          length_m: Optional[float], speed_factor: float = 1.0, retrace: Optional[float] = None,
+          route: Optional[str] = None) -> tuple[Optional[int], Optional[float]]:
     """Validate options; returns (frames or None = derive from the route, street length)."""
     if scene_name not in SCENES:
         raise ConfigError(f"unknown scene {scene_name!r}; expected one of {SCENES}")
@@ -63,7 +65,14 @@ def _plan(scene_name: str, frames: Optional[int], fps: float, loop: bool,
             raise ConfigError("--loop applies to the street scene only")
         if length_m is not None:
             raise ConfigError("--length-m applies to the street scene only")
+        if retrace is not None:
+            raise ConfigError("--retrace applies to the street scene only (with --loop)")
+        check_route(route)
         return int(frames or ROOM_FRAMES_DEFAULT), None
+    if route is not None:
+        raise ConfigError("--route applies to the room scene only (the street's route is open, or "
+                          "closed with --loop)")
+    check_retrace(retrace, loop)
     if length_m is None and frames is not None and not loop:
         # long enough for the requested frames at the fastest cruise speed
         length_m = max(50.0, (int(frames) - 1) / fps * 12.0 * speed_factor + 10.0)
@@ -77,23 +86,49 @@ def _plan(scene_name: str, frames: Optional[int], fps: float, loop: bool,
 
 def build_scene(scene_name: str, seed: int = 0, dynamic: bool = False, loop: bool = False,
                 length_m: Optional[float] = None, fps: float = 20.0, slow_start_s: float = 0.0,
-                speed_factor: float = 1.0) -> Scene:
+                speed_factor: float = 1.0, retrace: Optional[float] = None, route: Optional[str] = None,
+                route_duration_s: Optional[float] = None) -> Scene:
     """The scene :func:`generate` renders. For closed street routes the motion is time-scaled
-    (by < 0.1 %) so its duration is a whole number of camera periods: the last frame is then
-    exactly at the start pose. ``speed_factor``: the motion is played that many times faster
-    (speeds and turn rates x factor, accelerations x factor^2)."""
-    kw = {"dynamic": dynamic}
+    (by < 0.1 %) so one lap lasts a whole number of camera periods: the frame at the end of the lap
+    is then exactly at the start pose (with ``retrace``, every frame of the second pass is exactly
+    at the pose of the frame one lap earlier; ``scene.revisit`` gives the passes' times).
+    ``speed_factor``: the motion is played that many times faster (speeds and turn rates x factor,
+    accelerations x factor^2). ``route`` (room): ``'return'`` and ``'oneway'`` walks end at
+    ``route_duration_s`` s on the sequence clock (default: the last of 300 frames at ``fps``),
+    after a slow start and at any speed factor (the sway plays faster, the walk does not)."""
+    kw: dict = {"dynamic": dynamic}
+    if retrace is not None:
+        kw["retrace"] = retrace             # the room does not take it: make_scene says so
     if scene_name == "street":
         kw.update(loop=loop, length_m=length_m)
+        if route is not None:
+            kw["route"] = route             # nor the street a route
+    elif check_route(route) != "handheld":
+        T = (ROOM_FRAMES_DEFAULT - 1) / fps if route_duration_s is None else float(route_duration_s)
+        walk_s = speed_factor * (T - 0.5 * slow_start_s)       # the walk's own clock
+        if not walk_s >= ROUTE_MIN_DURATION_S - 1e-9:
+            need = int(np.ceil((ROUTE_MIN_DURATION_S / speed_factor + 0.5 * slow_start_s) * fps - 1e-9)) + 1
+            raise ConfigError(f"--route {route} needs at least {ROUTE_MIN_DURATION_S:g} s of walk: at "
+                              f"least {need} frames at {fps:g} fps here, got {T:g} s")
+        kw.update(route=route, route_duration_s=walk_s)
     scene = make_scene(scene_name, seed=seed, **kw)
     if speed_factor != 1.0:
         scene.motion = TimeScaledMotion(scene.motion, speed_factor)
     if scene_name == "street" and loop:
-        D = scene.motion.duration
-        D2 = np.ceil(D * fps - 1e-9) / fps
-        scene.motion = TimeScaledMotion(scene.motion, D / D2)
+        P = getattr(scene.motion, "period", None) or scene.motion.duration     # one lap (s)
+        P2 = np.ceil(P * fps - 1e-9) / fps
+        scene.motion = TimeScaledMotion(scene.motion, P / P2)
+    lap = getattr(scene.motion, "period", None)            # set with a retrace only
+    lap_end, end = lap, scene.motion.duration
     if slow_start_s > 0:        # from rest (a handheld camera picked up, a car pulling away)
         scene.motion = SlowStartMotion(scene.motion, slow_start_s)
+        if lap is not None:
+            lap_end, end = scene.motion.time_of(lap), scene.motion.duration
+    if lap is not None:
+        scene.revisit = {"first_pass_start_s": 0.0, "first_pass_end_s": float(lap_end),
+                         "retrace_start_s": float(lap_end), "retrace_end_s": float(end),
+                         "lap_s": float(lap), "retrace_fraction": float(scene.info["retrace"]),
+                         "loop_length_m": float(scene.info["loop_length_m"])}
     return scene
 
 
@@ -178,7 +213,8 @@ def generate(scene_name: str, out_dir, frames: Optional[int] = None, width: int 
              length_m: Optional[float] = None, mcap: bool = True, fps: float = 20.0,
              noise: bool = True, progress: bool = False,
              blind: Optional[tuple[float, float]] = None, slow_start_s: float = 0.0,
-             speed_factor: float = 1.0, imu: Optional["ImuStreamOptions"] = None) -> Path:
+             speed_factor: float = 1.0, imu: Optional["ImuStreamOptions"] = None,
+             retrace: Optional[float] = None, route: Optional[str] = None) -> Path:
     """Render scene ``scene_name`` and write it as an EuRoC/ASL folder at ``out_dir`` (and, if
     ``mcap``, ``<out_dir>/<scene>.mcap`` via :func:`vings_core.io.write_mcap`). Returns ``out_dir``.
 
@@ -193,6 +229,11 @@ def generate(scene_name: str, out_dir, frames: Optional[int] = None, width: int 
     21-29 m/s, highway speed; turn rates scale with the factor, accelerations with its square).
     ``imu``: how the IMU stream is recorded (:class:`ImuStreamOptions`: rate, camera-IMU time
     offset, dropped readings, gaps); the ground truth stays at 200 Hz on the true clock.
+    ``retrace`` (street, with ``loop``): after closing the loop, drive that fraction (0, 1] of it
+    again over the same lanes (default frames: the whole drive). ``route`` (room): ``'handheld'``
+    (default: wanders around), ``'return'`` (a lap of the room that ends at the first frame's
+    pose at the last frame) or ``'oneway'`` (turns round at one end of the room and walks to the
+    other, never re-seeing its first views); see :func:`~vings_core.sim.trajectory.route_handheld`.
     The summary (see :func:`summarize`) is saved as ``<out_dir>/sim.json``.
     """
     if not (np.isfinite(slow_start_s) and slow_start_s >= 0):
@@ -207,11 +248,13 @@ def generate(scene_name: str, out_dir, frames: Optional[int] = None, width: int 
             raise ConfigError(f"blind interval must be 0 <= start < end seconds, got {blind}")
     wall0 = time.time()
     out = Path(out_dir).expanduser().absolute()
-    frames_req, length_m = _plan(scene_name, frames, fps, loop, length_m, speed_factor)
+    frames_req, length_m = _plan(scene_name, frames, fps, loop, length_m, speed_factor, retrace, route)
     camera = default_camera(int(width), int(height))
     _check_out_dir(out)
+    route_s = (frames_req - 1) / fps if scene_name == "room" and route not in (None, "handheld") else None
     scene = build_scene(scene_name, seed=seed, dynamic=dynamic, loop=loop, length_m=length_m, fps=fps,
-                        slow_start_s=slow_start_s, speed_factor=speed_factor)
+                        slow_start_s=slow_start_s, speed_factor=speed_factor, retrace=retrace,
+                        route=route, route_duration_s=route_s)
 
     notes: list[str] = []
     n_frames = _frame_count(scene, frames_req, fps, loop, notes)
@@ -273,8 +316,9 @@ def _frame_count(scene: Scene, frames_req: Optional[int], fps: float, loop: bool
                           f"the {scene.info.get('route_length_m', 0):.0f} m route lasts {D:.1f} s "
                           f"(at most {max_frames} frames); raise --length-m or lower --frames")
     if loop and (n_frames - 1) / fps < D - 1e-9:
-        notes.append(f"only {n_frames} of {int(np.floor(D * fps + 1e-6)) + 1} frames: the loop "
-                     "is not closed")
+        lap = scene.revisit["first_pass_end_s"] if scene.revisit else D
+        what = "the loop is not closed" if (n_frames - 1) / fps < lap - 1e-9 else "the retrace is cut short"
+        notes.append(f"only {n_frames} of {int(np.floor(D * fps + 1e-6)) + 1} frames: {what}")
     return n_frames
 
 
@@ -444,12 +488,17 @@ def summarize(scene: Scene, camera, gt, t_frames: np.ndarray, fps: float, seed: 
     speed = np.linalg.norm(gt.v, axis=1)
     T_wb_first = scene.T_wb(t_frames[:1])[0]
     T_wb_last = scene.T_wb(t_frames[-1:])[0]
+    if scene.name == "room":
+        route = scene.info.get("route", "handheld")
+    else:
+        route = "loop" if scene.info.get("loop") else "open"
     return {
         "scene": scene.name, "seed": int(seed), "frames": int(len(t_frames)), "fps": float(fps),
         "duration_s": round(float(t_frames[-1]), 6), "imu_samples": int(len(gt.t)),
         "imu_rate_hz": IMU_RATE_HZ, "path_length_m": round(float(steps.sum()), 3),
         "mean_speed_mps": round(float(speed.mean()), 3), "max_speed_mps": round(float(speed.max()), 3),
-        "loop": bool(scene.info.get("loop", False)),
+        "loop": bool(scene.info.get("loop", False)), "route": route,
+        "retrace": scene.info.get("retrace"), "revisit": _revisit_summary(scene, t_frames, fps),
         "start_end_distance_m": float(np.linalg.norm(T_wb_last[:3, 3] - T_wb_first[:3, 3])),
         "dynamic": bool(scene.movers), "moving_objects": len(scene.movers),
         "imu_noise": bool(noise), "resolution": [camera.width, camera.height],
@@ -457,6 +506,25 @@ def summarize(scene: Scene, camera, gt, t_frames: np.ndarray, fps: float, seed: 
         "T_bc": scene.T_bc.tolist(), "first_stamp_ns": T0_NS,
         "scene_info": scene.info, **stats, "notes": list(notes),
     }
+
+
+def _revisit_summary(scene: Scene, t_frames: np.ndarray, fps: float) -> Optional[dict]:
+    """``scene.revisit`` (times in s on the sequence clock) with its frames: ``first_revisit_frame``
+    (the first frame at or after the end of the first pass; at the first frame's pose when it
+    falls on the end of the lap, as it always does without a slow start),
+    ``lap_frames`` (frame ``i + lap_frames`` retraces frame ``i``; exactly at its pose, after a
+    slow-start ramp), ``retrace_frames`` (frames after the end of the first pass) and
+    ``retrace_end_s`` cut to the last frame. None when the route has no second pass."""
+    if scene.revisit is None:
+        return None
+    r = {k: (round(v, 6) if isinstance(v, float) else v) for k, v in scene.revisit.items()}
+    t_end = float(t_frames[-1])
+    after = np.nonzero(t_frames >= scene.revisit["first_pass_end_s"] - 1e-6)[0]
+    r["retrace_end_s"] = round(min(scene.revisit["retrace_end_s"], t_end), 6) if len(after) else None
+    r["first_revisit_frame"] = int(after[0]) if len(after) else None
+    r["retrace_frames"] = int(np.count_nonzero(t_frames > scene.revisit["first_pass_end_s"] + 1e-6))
+    r["lap_frames"] = int(round(scene.revisit["lap_s"] * fps))
+    return r
 
 
 def _write_mcap(tmp: Path, scene_name: str) -> tuple[Optional[Path], Optional[str]]:

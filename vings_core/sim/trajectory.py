@@ -5,11 +5,14 @@ Frames: world z up (gravity -z); body x forward, y left, z up. Orientation is ya
 position, velocity and acceleration in the world and the body angular velocity in the body frame,
 all analytic (C2 or smoother), so that the IMU built from them is exactly consistent with the poses.
 
-* :class:`HandheldMotion`: sums of sinusoids (room scene), unbounded in time.
+* :class:`HandheldMotion`: sums of sinusoids (room scene), unbounded in time. :func:`random_handheld`
+  wanders around the room; :func:`route_handheld` walks a lap of the room back to its start pose
+  (``'return'``) or half a lap from one end of the room to the other (``'oneway'``).
 * :class:`DriveMotion`: a car-like motion along a route of straights and 90-degree turns on a street
   grid. Turn heading follows a quintic smooth step (curvature C1), speed follows quintic smooth
   ramps (slow down before turns, speed up after), so position is C3. A closed route returns exactly
   (to quadrature precision, ~1e-9 m) to its start with the same velocity.
+* :class:`RetraceMotion`: a closed route driven on into a second pass over the same lanes.
 """
 from __future__ import annotations
 
@@ -103,10 +106,43 @@ class SineSum:
         raise ValueError(order)
 
 
+@dataclass
+class SmoothStep:
+    """``c + delta * S((t - t0) / tau)`` with ``S`` the quintic smooth step (0 before ``t0``, 1 after
+    ``t0 + tau``; ``t0``, ``tau`` in s), with exact derivatives (zero outside the step, C2)."""
+
+    c: float
+    delta: float
+    t0: float
+    tau: float
+
+    def __call__(self, t, order: int = 0) -> np.ndarray:
+        u = np.clip((np.asarray(t, np.float64) - self.t0) / self.tau, 0.0, 1.0)
+        if order == 0:
+            return self.c + self.delta * _S(u)
+        if order == 1:
+            return self.delta * _S1(u) / self.tau
+        if order == 2:
+            return self.delta * _S2(u) / self.tau ** 2
+        raise ValueError(order)
+
+
+@dataclass
+class SignalSum:
+    """The sum of signals (:class:`SineSum`, :class:`SmoothStep`, ...: ``f(t, order)``), with exact
+    derivatives."""
+
+    terms: tuple
+
+    def __call__(self, t, order: int = 0) -> np.ndarray:
+        return sum(f(t, order) for f in self.terms)
+
+
 class HandheldMotion(Motion):
     """Handheld motion: position and yaw/pitch/roll are sums of sinusoids plus a slow yaw drift.
 
-    ``x, y, z, yaw, pitch, roll`` are :class:`SineSum`; ``yaw_rate`` adds ``yaw_rate * t`` so the
+    ``x, y, z, yaw, pitch, roll`` are :class:`SineSum` (or any signal ``f(t, order)`` with exact
+    derivatives, e.g. :class:`SignalSum`: m, rad); ``yaw_rate`` (rad/s) adds ``yaw_rate * t`` so the
     camera looks all around the room over time.
     """
 
@@ -151,6 +187,77 @@ def random_handheld(rng: np.random.Generator, center, half_range, z_mean: float,
     pitch = ss(-0.08, [0.14, 0.05, 0.006], [0.5, 1.2, 4.1])
     roll = ss(0.0, [0.07, 0.03, 0.006], [0.6, 1.4, 3.9])
     return HandheldMotion(x, y, z, yaw, pitch, roll, yaw_rate=rng.choice([-1.0, 1.0]) * 0.3)
+
+
+ROOM_ROUTES = ("handheld", "return", "oneway")
+ROUTE_MIN_DURATION_S = 5.0          # shortest return / oneway walk (s)
+
+
+def _whole_period_freqs(freqs: np.ndarray, period: float) -> np.ndarray:
+    """``freqs`` (rad/s) rounded to the nearest whole multiples (at least one) of ``2 pi / period``
+    (``period`` in s), so that sinusoids of them repeat exactly after ``period``."""
+    base = 2 * np.pi / period
+    return np.maximum(np.round(np.asarray(freqs, np.float64) / base), 1.0) * base
+
+
+def route_handheld(rng: np.random.Generator, kind: str, duration: float, center, half_range,
+                   z_mean: float) -> HandheldMotion:
+    """A handheld walk through the room that lasts ``duration`` s, bounded like
+    :func:`random_handheld` (body within ``center +- half_range`` in x/y, m; ``z_mean +- 0.2`` m),
+    with a handheld sway of position, yaw, pitch and roll on top (the same for both kinds).
+
+    * ``'return'``: one lap of the ellipse centred at ``center`` that fills ``half_range`` less the
+      sway, from a random point in a random direction, at a constant angular rate, looking along
+      the walk (yaw = the angle around the centre plus 90 degrees, within a few degrees of the
+      ellipse's tangent). Every sway frequency is a whole multiple of ``2 pi / duration``, so at
+      ``t = duration`` the pose (and velocity, acceleration, angular rate) equals the one at
+      ``t = 0``: the last frames re-see what the first frames saw, which the middle of the lap
+      looks away from.
+    * ``'oneway'``: starts at one end of the room's long (x) axis, on the centre line, looking at
+      that end's wall; turns around (yaw by 180 degrees, either way, between 20 % and 50 % of
+      ``duration``) and walks to the other end, x changing monotonically (a quintic smooth step
+      over the whole ``duration``; the sway aside). The first 20 % of the frames look at one end of
+      the room, the last 50 % at the other, and never back.
+
+    At ``duration`` = 15 s the mean speed is about 0.6 m/s (return) and 0.5 m/s (oneway), the
+    room's :func:`random_handheld` about 0.8 m/s; the walk's share falls as ``duration`` grows.
+    """
+    if kind not in ("return", "oneway"):
+        raise ValueError(f"route kind must be 'return' or 'oneway', got {kind!r}")
+    if not (np.isfinite(duration) and duration > 0):
+        raise ValueError(f"route duration must be > 0 s, got {duration}")
+    hx, hy = half_range
+    T = float(duration)
+
+    def ss(c, amps, freqs):
+        amps = np.asarray(amps, np.float64)
+        w = _whole_period_freqs(np.asarray(freqs, np.float64) * rng.uniform(0.9, 1.1, len(amps)), T)
+        return SineSum(float(c), amps, w, rng.uniform(0, 2 * np.pi, len(amps)))
+
+    amp_x, amp_y = [0.28, 0.07, 0.012], [0.2, 0.06, 0.012]          # sway (m)
+    a, b = hx - sum(amp_x), hy - sum(amp_y)                          # room left for the walk (m)
+    direction = float(rng.choice([-1.0, 1.0]))     # return: +1 counter-clockwise; oneway: turn left
+    sway_x = ss(0.0, amp_x, [1.7, 3.8, 6.5])
+    sway_y = ss(0.0, amp_y, [2.0, 4.3, 7.0])
+    z = ss(z_mean, [0.1, 0.04, 0.012], [0.8, 2.3, 6.5])
+    pitch = ss(-0.08, [0.12, 0.04, 0.006], [0.5, 1.2, 4.1])
+    roll = ss(0.0, [0.06, 0.03, 0.006], [0.6, 1.4, 3.9])
+    yaw_sway = ss(0.0, [0.1, 0.04, 0.01], [0.7, 1.9, 3.7])
+    if kind == "return":
+        phi0 = float(rng.uniform(0, 2 * np.pi))
+        w_walk = direction * 2 * np.pi / T           # rad/s around the centre
+        # (a cos(phi), b sin(phi)), phi = phi0 + w_walk t, written as sines
+        walk_x = SineSum(float(center[0]), np.array([a]), np.array([w_walk]), np.array([phi0 + np.pi / 2]))
+        walk_y = SineSum(float(center[1]), np.array([b]), np.array([w_walk]), np.array([phi0]))
+        x, y = SignalSum((walk_x, sway_x)), SignalSum((walk_y, sway_y))
+        yaw = SineSum(phi0 + direction * np.pi / 2, yaw_sway.A, yaw_sway.w, yaw_sway.phi)
+        return HandheldMotion(x, y, z, yaw, pitch, roll, yaw_rate=w_walk)
+    end = float(rng.choice([-1.0, 1.0]))             # the end of the room it starts at
+    x = SignalSum((SmoothStep(float(center[0]) + end * a, -2 * end * a, 0.0, T), sway_x))
+    y = SineSum(float(center[1]), sway_y.A, sway_y.w, sway_y.phi)           # on the centre line
+    look0 = 0.0 if end > 0 else np.pi                  # at the start wall
+    yaw = SignalSum((SmoothStep(look0, direction * np.pi, 0.2 * T, 0.3 * T), yaw_sway))
+    return HandheldMotion(x, y, z, yaw, pitch, roll)
 
 
 # ------------------------------------------------------------------------------ driving
@@ -470,6 +577,8 @@ class TimeScaledMotion(Motion):
         self.scale = float(scale)
         self.duration = None if base.duration is None else base.duration / self.scale
         self.total_length = getattr(base, "total_length", None)
+        base_period = getattr(base, "period", None)
+        self.period = None if base_period is None else base_period / self.scale
 
     def sample(self, t) -> MotionSample:
         t = np.atleast_1d(np.asarray(t, np.float64))
@@ -493,6 +602,21 @@ class SlowStartMotion(Motion):
         self.duration = None if base.duration is None else base.duration + 0.5 * self.ramp_s
         self.total_length = getattr(base, "total_length", None)
 
+    def time_of(self, tau: float) -> float:
+        """The time ``t`` (s) at which the base clock reads ``tau`` (s, >= 0): the inverse of
+        :meth:`warp` (bisection inside the ramp)."""
+        T = self.ramp_s
+        if tau >= 0.5 * T:
+            return float(tau + 0.5 * T)
+        lo, hi = 0.0, T
+        for _ in range(100):
+            mid = 0.5 * (lo + hi)
+            if self.warp(mid)[0][0] < tau:
+                lo = mid
+            else:
+                hi = mid
+        return 0.5 * (lo + hi)
+
     def warp(self, t) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """``tau(t)``, ``tau'(t)``, ``tau''(t)`` (base time and its derivatives)."""
         t = np.atleast_1d(np.asarray(t, np.float64))
@@ -510,6 +634,35 @@ class SlowStartMotion(Motion):
         s = self.base.sample(tau)
         return MotionSample(t, s.p, s.v * d1[:, None], s.a * (d1 ** 2)[:, None] + s.v * d2[:, None], s.R,
                             s.w * d1[:, None])
+
+
+class RetraceMotion(Motion):
+    """A closed route driven on into a second pass: ``base`` (a closed :class:`DriveMotion`) played
+    at ``t mod period`` (``period = base.duration``, s) until ``fraction`` (0-1] of the route's
+    length has been driven a second time, over the same lanes in the same direction.
+
+    A closed route's state at its end equals its start (position, velocity, acceleration, attitude,
+    angular rate: it starts and ends cruising on a straight, and the suspension bounce's frequencies
+    are whole multiples of 1 / period), so the motion stays smooth across ``t = period`` and the IMU
+    built from it stays exact. The pose at ``t + period`` is the pose at ``t``.
+    ``total_length`` (m) is the whole drive, ``loop_length`` (m) one lap.
+    """
+
+    def __init__(self, base: DriveMotion, fraction: float):
+        if not (np.isfinite(fraction) and 0.0 < fraction <= 1.0):
+            raise ValueError(f"retrace fraction must be in (0, 1], got {fraction}")
+        self.base = base
+        self.fraction = float(fraction)
+        self.period = float(base.duration)
+        self.loop_length = float(base.total_length)
+        extra = self.period if fraction >= 1.0 else _time_at_length(base, fraction * self.loop_length)
+        self.duration = self.period + extra
+        self.total_length = self.loop_length * (1.0 + self.fraction)
+
+    def sample(self, t) -> MotionSample:
+        t = np.atleast_1d(np.asarray(t, np.float64))
+        s = self.base.sample(np.mod(t, self.period))
+        return MotionSample(t, s.p, s.v, s.a, s.R, s.w)
 
 
 def _time_at_length(m: DriveMotion, length: float) -> float:

@@ -29,7 +29,7 @@ import numpy as np
 
 from ..errors import ConfigError
 from ..eval.align import umeyama
-from ..geometry import sim3, sim3_apply_to_pose, sim3_compose
+from ..geometry import sim3, sim3_apply_to_pose, sim3_compose, sim3_scale
 from ..mapping.history import scale_keyframe_depth
 from ..types import Calibration, ImuSample, Keyframe
 from .align import Alignment, align, excitation
@@ -500,6 +500,24 @@ class ViFusion:
                 if not self._add_state(fe, k.stamp):
                     return
         self._visual_and_optimise(fe)
+
+    def world_moved(self, increments: dict[int, np.ndarray]) -> None:
+        """Frames moved by a correction of the past (``Frontend.apply_jump``, ``{stamp: C}``):
+        the smoother's states move with their keyframes (:meth:`WindowSmoother.move`). A
+        correction that changes the scale of a metric state cannot be right for the IMU: the
+        fusion starts over (a new alignment)."""
+        sm = self.smoother
+        if sm is None or not sm.states:
+            return
+        mine = {s: C for s, C in increments.items() if s in set(sm.window_stamps())}
+        if not mine:
+            return
+        if any(abs(sim3_scale(C) - 1.0) > 1e-6 for C in mine.values()):
+            self.reset("a loop correction changed the scale of the metric window")
+            self._event(self.reason)
+            return
+        sm.move(mine)
+        self._event(f"smoother moved by a correction of the past ({len(mine)} state(s))")
 
     # ---------------------------------------------------------------------------- output
 

@@ -197,6 +197,42 @@ class WindowSmoother:
         for k in _keys(old):
             self.values.erase(k)
 
+    def move(self, increments: dict[int, np.ndarray]) -> int:
+        """Move states by rigid world-frame increments ``{stamp: C}`` (4x4; a loop correction): the
+        body pose becomes ``C T_wb``, the velocity ``R_C v``; biases stay. The priors (the first
+        state's and those left by marginalisation) were linearised at the old states: they are
+        replaced by one prior on the oldest state at its moved value, with its marginal covariance
+        before the move (velocity block rotated by ``R_C``; the information the window's own
+        factors give that state is counted twice, once per correction). The IMU and visual factors
+        are relative and move with the states. Returns how many states moved."""
+        import gtsam
+        hit = [i for i in self.states if self.stamps[i] in increments]
+        if not hit:
+            return 0
+        first = self.states[0]
+        x0, v0, b0 = _keys(first)
+        try:
+            m = gtsam.Marginals(self.graph(), self.values)
+            P = [np.array(m.marginalCovariance(k)) for k in (x0, v0, b0)]
+        except RuntimeError:
+            P = None
+        for i in hit:
+            C = np.asarray(increments[self.stamps[i]], np.float64)
+            x, vk, _ = _keys(i)
+            self.values.update(x, gtsam.Pose3(C @ self.values.atPose3(x).matrix()))
+            self.values.update(vk, C[:3, :3] @ np.asarray(self.values.atVector(vk)))
+        C0 = np.asarray(increments.get(self.stamps[first], np.eye(4)), np.float64)
+        if P is None:
+            P = [np.eye(6) * 1e-6, np.eye(3) * 1e-2, np.eye(6) * 1e-4]
+        Pv = C0[:3, :3] @ P[1] @ C0[:3, :3].T
+        Cov = gtsam.noiseModel.Gaussian.Covariance
+        self.priors = [
+            _Tracked(gtsam.PriorFactorPose3(x0, self.values.atPose3(x0), Cov(0.5 * (P[0] + P[0].T))), (first,)),
+            _Tracked(gtsam.PriorFactorVector(v0, np.asarray(self.values.atVector(v0)), Cov(0.5 * (Pv + Pv.T))), (first,)),
+            _Tracked(gtsam.PriorFactorConstantBias(b0, self.values.atConstantBias(b0), Cov(0.5 * (P[2] + P[2].T))),
+                     (first,))]
+        return len(hit)
+
     # --------------------------------------------------------------------------- reading
 
     def estimate(self, stamp_ns: int) -> NavEstimate:

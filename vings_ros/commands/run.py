@@ -23,6 +23,8 @@ def register(subparsers) -> None:
                    help="deterministic: the mapper finishes each keyframe before tracking goes on")
     p.add_argument("--no-imu", action="store_true",
                    help="visual-only: do not fuse the IMU even when the recording has one (vio.enabled false)")
+    p.add_argument("--no-loop", action="store_true",
+                   help="no loop closure (loop.enabled false), e.g. for ablations")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.add_argument("--json", action="store_true", help="print metrics.json as one JSON line at the end")
     p.add_argument("--profile", action="store_true",
@@ -46,13 +48,16 @@ def run(args: argparse.Namespace) -> int:
     cfg = check_params_file(args.params)["run"] if args.params else RunConfig()
     vio_cfg = load_section(ViConfig, "vio", args.params)
     vio_cfg.enabled = vio_cfg.enabled and not args.no_imu
+    from vings_core.loop import LoopConfig
+    loop_cfg = load_section(LoopConfig, "loop", args.params)
+    loop_cfg.enabled = loop_cfg.enabled and not args.no_loop
     cfg.sync = cfg.sync or args.sync
     cfg.gt_poses = cfg.gt_poses or args.gt_poses
     source = open_working_source(args.source, source_options(args), cfg.width, cfg.height)
     for w in source.warnings:
         print(f"vings run: warning: {w}", file=sys.stderr)
     runner = SlamRunner(source, args.out, params_file=args.params, run_cfg=cfg, progress=not args.no_progress,
-                        vio_cfg=vio_cfg)
+                        vio_cfg=vio_cfg, loop_cfg=loop_cfg)
     if args.profile:
         PROFILE.enable()
     metrics = runner.run()
@@ -61,7 +66,8 @@ def run(args: argparse.Namespace) -> int:
         runner.out.write_json("profile.json", {"wall_s": metrics.get("wall_s"), "steps": rows})
         print(format_table(rows))
     print(f"outputs in {runner.out.out_dir}: trajectory.tum keyframes.tum map.ply checkpoint.pt "
-          f"metrics.json renders/")
+          f"metrics.json "
+          f"{'loops.json ' if runner.loop is not None else ''}renders/")
     if args.json:
         print(json.dumps(metrics))
     else:

@@ -35,6 +35,13 @@ def register(subparsers) -> None:
                    help="street route length in metres (default 400; >= 50)")
     p.add_argument("--loop", action="store_true",
                    help="street: closed route that ends exactly at its start")
+    p.add_argument("--retrace", type=float, default=None, metavar="F",
+                   help="street, with --loop: after closing the loop, drive fraction F (0 < F <= 1) "
+                        "of it again over the same lanes (a second pass; sim.json 'revisit' gives its times)")
+    p.add_argument("--route", choices=("handheld", "return", "oneway"), default=None,
+                   help="room: handheld (default) wanders around; return walks a lap of the room and "
+                        "ends at the start pose; oneway turns round at one end of the room and walks "
+                        "to the other, never re-seeing its first views")
     p.add_argument("--dynamic", action="store_true", help="add moving objects (and their masks)")
     p.add_argument("--fps", type=float, default=20.0, help="camera rate (Hz, divides 200)")
     p.add_argument("--width", type=image_side, default=376, help="image width (px)")
@@ -68,7 +75,7 @@ def run(args) -> int:
                    seed=args.seed, dynamic=args.dynamic, loop=args.loop, length_m=args.length_m,
                    mcap=not args.no_mcap, fps=args.fps, noise=not args.no_noise,
                    progress=args.progress, blind=args.blind, slow_start_s=args.slow_start,
-                   speed_factor=args.speed_factor,
+                   speed_factor=args.speed_factor, retrace=args.retrace, route=args.route,
                    imu=ImuStreamOptions(args.imu_rate, args.imu_td, args.imu_drop, tuple(args.imu_gap)))
     print(json.dumps(load_summary(out), indent=2))
     return 0
