@@ -17,6 +17,7 @@ import numpy as np
 
 from ..exchange import IncrementBatch, PoseFollower
 from ..geometry import sim3_scale
+from ..profiling import timed
 from ..types import Keyframe
 from .config import GraphChoice, LoopConfig, Verdict
 from .database import KeyframeDatabase, extract
@@ -88,8 +89,10 @@ class LoopCloser:
         correct every keyframe (the batch waits in :meth:`poll`). Returns the accepted loop's
         record, or None."""
         t0 = time.perf_counter()
-        e = extract(kf, len(self.db), self.cfg)
-        self.db.add(e, self.cfg)
+        with timed("loop", "features"):
+            e = extract(kf, len(self.db), self.cfg)
+        with timed("loop", "database"):
+            self.db.add(e, self.cfg)
         self.follower.keyframe_added(e.stamp_ns, e.T_wc)
         self.stats["keyframes"] += 1
         loop = self._detect(e, kf)
@@ -120,56 +123,58 @@ class LoopCloser:
             ch = Check(c)
             checks.append(ch)
             older = self.db.get(c.stamp_ns)
-            pairs = match_descriptors(older.desc, e.desc, cfg.features, cfg.ratio)
+            why = self._refuse(ch, e.index)          # the cheap rules before any matching
+            if why is not None:
+                ch.reason = f"refused: {why}"
+                continue
+            with timed("loop", "match"):
+                pairs = match_descriptors(older.desc, e.desc, cfg.features, cfg.ratio)
             ch.matches = len(pairs)
             if ch.matches < cfg.min_matches:
                 ch.reason = f"{ch.matches} matches (need {cfg.min_matches})"
                 continue
-            if not solve_loop_pnp(older, e, pairs, K, cfg, ch):
-                continue
-            if not render_check(self.render, ch, image, kf.camera, self._older_than(e.index), cfg):
-                continue
+            with timed("loop", "PnP"):
+                if not solve_loop_pnp(older, e, pairs, K, cfg, ch):
+                    continue
+            with timed("loop", "render check"):
+                if not render_check(self.render, ch, image, kf.camera, self._older_than(e.index), cfg):
+                    continue
             ch.passed = True
-        best = decide(checks, cfg)
-        if best is not None:
-            why = self._refuse(best, e.index)
-            if why is not None:
-                best.reason = why
-                best = None
+        passing = decide(checks, cfg)
+        best = passing[0] if passing else None
+        for ch in passing[1:]:
+            ch.reason = f"{ch.reason}, but candidate {best.candidate.stamp_ns} rendered better"
         accepted, accepted_rec = None, None
         for ch in checks:
             rec = ch.record(e.stamp_ns)
             if ch is best:
+                older = self.db.get(ch.candidate.stamp_ns)
                 accepted = AcceptedLoop(ch.candidate.stamp_ns, e.stamp_ns, ch.candidate.index, e.index,
                                         ch.T_on if not self._se3() else _rigid(ch.T_on),
-                                        cfg.loop_sigma_pos_median * max(self.db.get(ch.candidate.stamp_ns).median_depth, 1e-6))
+                                        cfg.loop_sigma_pos_median * max(older.median_depth, 1e-6))
                 rec.update(verdict=Verdict.ACCEPTED.value, reason=ch.reason)
                 accepted_rec = rec
             else:
-                reason = ch.reason
-                if ch.passed and best is not None and "<=" in reason:
-                    reason = f"{reason}, but candidate {best.candidate.stamp_ns} rendered better"
-                rec.update(verdict=Verdict.REJECTED.value, reason=reason)
+                rec.update(verdict=Verdict.REJECTED.value, reason=ch.reason)
             self.records.append(rec)
         self.stats["candidates_checked"] += len(checks)
         self.stats["rejected"] += len(checks) - int(accepted is not None)
         return None if accepted is None else (accepted, accepted_rec)
 
-    def _refuse(self, best: Check, index: int) -> Optional[str]:
-        """The temporal and geometric acceptance rules; a reason when the loop is refused."""
+    def _refuse(self, ch: Check, index: int) -> Optional[str]:
+        """The temporal and geometric acceptance rules; why the loop is refused (None: accepted)."""
         cfg = self.cfg
-        span = index - best.candidate.index
+        span = index - ch.candidate.index
         if span < cfg.min_span_keyframes:
-            return f"{best.reason}, but spans {span} keyframes (need {cfg.min_span_keyframes})"
+            return f"spans {span} keyframes (need {cfg.min_span_keyframes})"
         if self.loops:
             last = self.loops[-1]
             if index - last.newer_index < cfg.min_spacing_keyframes:
-                return f"{best.reason}, but {index - last.newer_index} keyframes after the last loop " \
-                       f"(need {cfg.min_spacing_keyframes})"
-            if last.older_index < best.candidate.index < last.newer_index and \
+                return f"{index - last.newer_index} keyframes after the last loop (need {cfg.min_spacing_keyframes})"
+            if last.older_index < ch.candidate.index < last.newer_index and \
                     index - last.newer_index < cfg.min_span_keyframes:
-                return f"{best.reason}, but nested in the loop {last.older}-{last.newer} closed " \
-                       f"{index - last.newer_index} keyframes ago"
+                return f"nested in the loop {last.older}-{last.newer} closed {index - last.newer_index} " \
+                       f"keyframes ago"
         return None
 
     # ------------------------------------------------------------------ correction
@@ -186,7 +191,8 @@ class LoopCloser:
         poses = {e.stamp_ns: e.T_wc for e in self.db.entries}
         edges = [LoopEdge(l.older, l.newer, l.T_on if mode == GraphMode.SIM3 else _rigid(l.T_on),
                           cfg.loop_sigma_rot, l.sigma_pos, cfg.loop_sigma_scale) for l in self.loops]
-        res = optimize_pose_graph(poses, edges, mode, odo_sigma_rot=cfg.odo_sigma_rot,
+        with timed("loop", "pose graph"):
+            res = optimize_pose_graph(poses, edges, mode, odo_sigma_rot=cfg.odo_sigma_rot,
                                   odo_sigma_pos_rel=cfg.odo_sigma_pos_rel, odo_sigma_pos_min=cfg.odo_sigma_pos_min,
                                   odo_sigma_scale=cfg.odo_sigma_scale, robust_k=cfg.robust_k,
                                   fixed=self.db.entries[0].stamp_ns)

@@ -70,16 +70,17 @@ class LoopConfig:
     render_max_accept: float = 0.25       #: the fraction rule never accepts an L1 above this
     render_min_coverage: float = 0.3      #: fraction of pixels the earlier map covers (alpha > 0.5)
     render_exclude_recent: bool = True    #: render only Gaussians of keyframes older than the gap
+    render_downscale: int = 2             #: the check renders at 1/this of the working resolution
     # ---- acceptance
     min_span_keyframes: int = 20          #: older and newer at least this many keyframes apart
     min_spacing_keyframes: int = 5        #: keyframes between two accepted loops
     max_scale_change: float = 0.5         #: largest |log| relative scale of a loop edge
     # ---- correction
     graph: GraphChoice = GraphChoice.AUTO
-    odo_sigma_rot: float = 0.01           #: odometry edge: rotation std (rad)
-    odo_sigma_pos_rel: float = 0.02       #: ... position std per unit of distance between keyframes
+    odo_sigma_rot: float = 0.02           #: odometry edge: rotation std (rad)
+    odo_sigma_pos_rel: float = 0.05       #: ... position std per unit of distance between keyframes
     odo_sigma_pos_min: float = 0.005      #: ... least position std
-    odo_sigma_scale: float = 0.01         #: ... log-scale std (Sim(3))
+    odo_sigma_scale: float = 0.02         #: ... log-scale std (Sim(3))
     loop_sigma_rot: float = 0.005         #: loop edge: rotation std (rad)
     loop_sigma_pos_median: float = 0.01   #: ... position std in median depths of the older keyframe
     loop_sigma_scale: float = 0.02        #: ... log-scale std
@@ -96,7 +97,7 @@ class LoopConfig:
         self.features = LoopFeatures(self.features)
         self.graph = GraphChoice(self.graph)
         pos_int = ("n_features", "min_gap_keyframes", "vocabulary_words", "vocabulary_after",
-                   "max_candidates", "min_matches", "min_inliers")
+                   "max_candidates", "min_matches", "min_inliers", "render_downscale")
         for name in pos_int:
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")

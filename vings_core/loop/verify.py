@@ -160,18 +160,31 @@ def solve_loop_pnp(older: KeyframeEntry, cur: KeyframeEntry, pairs: np.ndarray, 
     return True
 
 
+def scaled_camera(camera: CameraModel, f: int) -> CameraModel:
+    """``camera`` at ``1/f`` of its resolution (pixel centres kept: ``c' = (c + 0.5) / f - 0.5``)."""
+    w, h = max(camera.width // f, 1), max(camera.height // f, 1)
+    sx, sy = w / camera.width, h / camera.height
+    return CameraModel(width=w, height=h, fx=camera.fx * sx, fy=camera.fy * sy,
+                       cx=(camera.cx + 0.5) * sx - 0.5, cy=(camera.cy + 0.5) * sy - 0.5)
+
+
 def render_check(render: Optional[RenderFn], check: Check, image: np.ndarray, camera: CameraModel,
                  older_than: Optional[int], cfg: LoopConfig) -> bool:
-    """Render the map from ``check.T_wc_loop`` and compare with ``image`` ``(H, W, 3)`` in [0, 1]:
-    mean absolute error over the pixels the map covers (alpha > 0.5) and that coverage. False
-    (and a reason) without a map or with too little coverage."""
+    """Render the map from ``check.T_wc_loop`` at ``1/render_downscale`` of the resolution and
+    compare with ``image`` ``(H, W, 3)`` in [0, 1] (area-averaged to that size): mean absolute error
+    over the pixels the map covers (alpha > 0.5) and that coverage. False (and a reason) without a
+    map or with too little coverage."""
     if render is None:
         check.reason = "no map to render"
         return False
-    out = render(check.T_wc_loop, camera, older_than)
+    f = max(int(cfg.render_downscale), 1)
+    cam = camera if f == 1 else scaled_camera(camera, f)
+    out = render(check.T_wc_loop, cam, older_than)
     if out is None:
         check.reason = "no map to render"
         return False
+    if f > 1:
+        image = cv2.resize(image, (cam.width, cam.height), interpolation=cv2.INTER_AREA)
     cov = np.asarray(out["alpha"]) > 0.5
     check.coverage = float(cov.mean())
     if check.coverage < cfg.render_min_coverage:
@@ -183,12 +196,13 @@ def render_check(render: Optional[RenderFn], check: Check, image: np.ndarray, ca
     return True
 
 
-def decide(checks: list[Check], cfg: LoopConfig) -> Optional[Check]:
+def decide(checks: list[Check], cfg: LoopConfig) -> list[Check]:
     """The paper's criterion over the rendered candidates: render L1 below ``render_l1_max``, or
     below ``render_median_fraction`` of the median of the other candidates' L1 (and below
-    ``render_max_accept``). The lowest L1 that passes is the loop; every check gets its reason."""
+    ``render_max_accept``). Returns those that pass, lowest L1 first; every rendered check gets its
+    reason."""
     rendered = [c for c in checks if c.passed]
-    best: Optional[Check] = None
+    ok: list[Check] = []
     for c in rendered:
         others = [o.render_l1 for o in rendered if o is not c]
         med = float(np.median(others)) if others else None
@@ -201,6 +215,5 @@ def decide(checks: list[Check], cfg: LoopConfig) -> Optional[Check]:
             c.reason = f"render L1 {c.render_l1:.3f} above {cfg.render_l1_max:g}" + \
                        (f" and {cfg.render_median_fraction:g} x median {med:.3f}" if med is not None else "")
             continue
-        if best is None or c.render_l1 < best.render_l1:
-            best = c
-    return best
+        ok.append(c)
+    return sorted(ok, key=lambda c: c.render_l1)

@@ -196,12 +196,14 @@ class Mapper:
         return out
 
     def retrain_region(self, iters: int, max_s: float, prune: bool = True) -> dict:
-        """After a loop correction: ``iters`` training iterations (at most ``max_s`` seconds) cycling
-        over the window keyframes and the history keyframes within ``tau`` of the newest one (the
-        revisited region, where the corrected first visit and the new pass overlap); then
-        (``prune``) remove the active Gaussians that lie in front of at least one of those views
-        and contribute to none of them (their contribution score ``sum alpha T`` over the views is
-        below ``loop_prune_contribution``): surfaces left doubled by the drift. Returns counts."""
+        """After a loop correction: ``iters`` training iterations cycling over the window keyframes
+        and the history keyframes within ``tau`` of the newest one (the revisited region, where the
+        corrected first visit and the new pass overlap); then (``prune``) remove the active
+        Gaussians that lie in front of at least one of the trained views and contribute to none of
+        them (their contribution score ``sum alpha T`` over the views is below
+        ``loop_prune_contribution``): surfaces left doubled by the drift. The whole takes at most
+        about ``max_s`` seconds (training stops at 3/4 of it, the prune's renders at the bound; the
+        views rendered by then decide). Returns counts."""
         t0 = time.perf_counter()
         st = self.state
         stamps = [kf.stamp_ns for kf in st.window] + self.trainer.history_near()
@@ -211,8 +213,9 @@ class Mapper:
         order = [stamps[int(i)] for i in torch.randperm(len(stamps), generator=st.rng)]
         win = {kf.stamp_ns: kf for kf in st.window}
         views: dict[int, Keyframe] = {}
+        train_s = 0.75 * max_s if prune else max_s     # the prune's renders take the rest
         for it in range(int(iters)):
-            if time.perf_counter() - t0 > max_s or len(self.gm) == 0:
+            if time.perf_counter() - t0 > train_s or len(self.gm) == 0:
                 break
             s = order[it % len(order)]
             if s not in views:
@@ -227,6 +230,8 @@ class Mapper:
                 seen = torch.zeros(len(self.gm), dtype=torch.bool)
                 used = torch.zeros(len(self.gm), dtype=torch.float32)
                 for kf in views.values():
+                    if time.perf_counter() - t0 > max_s:       # the views rendered so far decide
+                        break
                     T_cw = torch.linalg.inv(kf.T_wc.to(torch.float64))
                     r = self.state.rasterize(self.gm, T_cw, kf.camera, sample_ratio=1.0)
                     used += r.contribution.to(torch.float32)
