@@ -155,3 +155,29 @@ def test_bad_increments_are_refused_before_any_change(frames):
     with pytest.raises(InputError, match="expected a 4x4 pose"):
         fe.set_poses({s0: np.eye(4)[None]})
     assert np.array_equal(fe.trajectory().poses, tr.poses)
+
+
+def test_a_jump_moves_the_present_with_the_newest_corrected_keyframe(frames):
+    """``apply_jump`` (a loop closer's batch): the keyframes named move by their own increments,
+    every keyframe and frame newer than the newest of them by its increment; tracking goes on."""
+    fe = _run(frames, 30)
+    kf_stamps = [int(s) for s in fe.keyframe_trajectory().stamps_ns]
+    assert len(kf_stamps) >= 3
+    named = kf_stamps[:-1]                          # the newest keyframe is not in the batch
+    C_old = _rigid()
+    C_new = sim3(np_so3_exp(np.array([0.0, 0.0, 0.3])), np.array([0.2, 0.1, -0.3]), 1.0)
+    incs = {s: C_old for s in named[:-1]}
+    incs[named[-1]] = C_new
+    before = {int(s): T for s, T in zip(fe.trajectory().stamps_ns, fe.trajectory().poses)}
+    fe.apply_jump(incs)
+    for s, T in before.items():
+        if s in incs:
+            want = sim3_apply_to_pose(incs[s], T)
+        elif s > named[-1]:
+            want = sim3_apply_to_pose(C_new, T)
+        else:
+            continue            # frames between named keyframes follow their reference keyframe
+        assert np.allclose(fe.pose(s), want, atol=1e-9), s
+    assert fe.stats["jumps"] == 1
+    for f in frames[30:34]:
+        assert fe.process(f)[-1].state == "tracking"

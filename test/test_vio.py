@@ -342,3 +342,35 @@ def test_time_offset_estimate_recovers_a_known_offset(motion):
     still = [np.eye(3)] * len(cam)
     e = estimate_td(imu, (cam * 1e9).round().astype(np.int64), still)
     assert not e.ok and "not observable" in e.why
+
+
+def test_a_loop_correction_moves_the_smoother_and_its_prior_with_the_states(motion):
+    """``WindowSmoother.move`` with a gravity-preserving correction (yaw and translation, as a
+    visual-inertial loop closure gives): after it the window optimises to the moved truth (the
+    prior left by marginalisation no longer pulls the states back), velocities rotated."""
+    m, imu, T_bc = motion
+    params = gtsam_params(ImuNoiseConfig())
+    kt = np.arange(1.0, 2.21, 0.1)
+    ns = (kt * 1e9).round().astype(np.int64)
+    s = m.sample(kt)
+    T_wb = []
+    for R, p in zip(s.R, s.p):
+        T = np.eye(4)
+        T[:3, :3], T[:3, 3] = R, p
+        T_wb.append(T)
+    sm = WindowSmoother(params, T_bc)
+    sm.start(NavEstimate(int(ns[0]), T_wb[0], s.v[0], np.zeros(3), np.zeros(3)), [1e-3] * 6, 1e-2, 0.1, 0.01)
+    for k in range(1, len(ns)):
+        sm.add(int(ns[k]), gtsam_preintegrate(imu, int(ns[k - 1]), int(ns[k]), params), T_wb[k])
+    sm.optimize(5)
+    sm.marginalize_oldest()
+    sm.marginalize_oldest()
+    C = np.eye(4)
+    C[:3, :3] = gtsam.Rot3.Yaw(0.7).matrix()
+    C[:3, 3] = [3.0, -2.0, 0.5]
+    assert sm.move({int(t): C for t in ns}) == len(sm.states)
+    sm.optimize(5)
+    for t, T, v in zip(ns[2:], T_wb[2:], s.v[2:]):
+        e = sm.estimate(int(t))
+        assert np.abs(e.T_wb[:3, 3] - (C @ T)[:3, 3]).max() < 2e-3
+        assert np.abs(e.v - C[:3, :3] @ v).max() < 2e-2
