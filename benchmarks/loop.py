@@ -185,7 +185,9 @@ def _map_figures(runner, path: Path, revisit_stamp: int, n: int = 3) -> dict:
     images = {}
     for fr in src.frames():
         if fr.stamp_ns in want:
-            images[fr.stamp_ns] = fr.image.numpy().astype(np.float32)[..., :3] / (255.0 if fr.image.dtype.is_floating_point is False else 1.0)
+            a = np.asarray(fr.image)
+            a = a.astype(np.float32) / 255.0 if a.dtype == np.uint8 else a.astype(np.float32)
+            images[fr.stamp_ns] = np.repeat(a[..., None], 3, -1) if a.ndim == 2 else a[..., :3]
     bound = rev[0]
 
     def score(ss):
@@ -267,19 +269,16 @@ def exp_revisit(a) -> dict:
 def _nofalse_run(path: Path, use_imu: bool) -> dict:
     m, runner = _run(path, "", use_imu, True)
     recs = runner.loop.records if runner.loop is not None else []
-    why = Counter(r["reason"].split(" (")[0].split(":")[0].split(" ")[-1] if r["verdict"] == "rejected" else "accepted"
-                  for r in recs)
     reasons = Counter()
     for r in recs:
         t = r["reason"]
         key = ("matches" if "matches (need" in t else "matches with depth" if "with depth" in t else
                "pnp" if t.startswith("PnP") else "scale" if "relative scale" in t else
                "coverage" if "covers" in t else "render L1" if "above" in t else
-               "span" if "spans" in t else "spacing" if "after the last loop" in t else
+               "spacing" if "after the last loop" in t else
                "nested" if "nested" in t else "no map" if "no map" in t else
                "accepted" if r["verdict"] == "accepted" else "other")
         reasons[key] += 1
-    del why
     return {"loops_accepted": m["loops_accepted"], "candidates_checked": len(recs),
             "candidates_rejected": m["loop_candidates_rejected"], "rejected_by": dict(reasons),
             "keyframes": m["keyframes"], "frames": m["frames"], "loop_detect_ms_mean": m.get("loop_detect_ms_mean"),

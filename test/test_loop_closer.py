@@ -84,7 +84,7 @@ def test_pnp_refuses_a_different_place():
 def test_retrieval_finds_a_revisit_beyond_the_radius():
     """Twenty places with their own texture; the 21st keyframe sees place 3 again but its pose has
     drifted far beyond the radius: the bag of words proposes keyframe 3."""
-    cfg = LoopConfig(vocabulary_after=10, vocabulary_words=64, radius=1.0, min_gap_keyframes=5)
+    cfg = LoopConfig(vocabulary_after=10, vocabulary_words=64, radius=1.0, min_gap_keyframes=5, min_span_keyframes=5)
     db = KeyframeDatabase()
     for i in range(20):
         db.add(extract(_view(_pose(0.0), _texture(100 + i), 1_000 * (i + 1)), i, cfg), cfg)

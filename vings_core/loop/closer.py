@@ -163,10 +163,7 @@ class LoopCloser:
 
     def _refuse(self, ch: Check, index: int) -> Optional[str]:
         """The temporal and geometric acceptance rules; why the loop is refused (None: accepted)."""
-        cfg = self.cfg
-        span = index - ch.candidate.index
-        if span < cfg.min_span_keyframes:
-            return f"spans {span} keyframes (need {cfg.min_span_keyframes})"
+        cfg = self.cfg                  # (the least span is a condition of the candidates already)
         if self.loops:
             last = self.loops[-1]
             if index - last.newer_index < cfg.min_spacing_keyframes:

@@ -11,7 +11,7 @@ class LoopFeatures(str, Enum):
 
     ORB = "orb"         #: binary, fast (default)
     SIFT = "sift"       #: float, slower, more distinctive on plain surfaces
-    AKAZE = "akaze"     #: binary (MLDB), between the two
+    AKAZE = "akaze"     #: binary (MLDB), between the two; needs an OpenCV build that has it
 
     def __str__(self) -> str:
         return self.value

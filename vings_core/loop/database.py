@@ -14,7 +14,7 @@ import cv2
 import numpy as np
 import torch
 
-from ..errors import InputError
+from ..errors import ConfigError, InputError
 from ..geometry import sim3_apply_to_pose, sim3_scale
 from ..types import Keyframe
 from .config import LoopConfig, LoopFeatures
@@ -28,7 +28,11 @@ def detector(kind: LoopFeatures, n: int):
                               fastThreshold=7), cv2.NORM_HAMMING
     if kind == LoopFeatures.SIFT:
         return cv2.SIFT_create(nfeatures=n), cv2.NORM_L2
-    return cv2.AKAZE_create(threshold=1e-4), cv2.NORM_HAMMING
+    make = getattr(cv2, "AKAZE_create", None)
+    if make is None:
+        raise ConfigError(f"loop.features: akaze is not in this OpenCV build ({cv2.__version__}); "
+                          f"use orb or sift")
+    return make(threshold=1e-4), cv2.NORM_HAMMING
 
 
 def grey_u8(image: torch.Tensor | np.ndarray) -> np.ndarray:
@@ -98,7 +102,7 @@ class Vocabulary:
         self._w2 = (self.words ** 2).sum(1)
 
     @staticmethod
-    def build(descs: list[np.ndarray], k: int, seed: int = 0, max_rows: int = 20000) -> "Vocabulary":
+    def build(descs: list[np.ndarray], k: int, seed: int = 0, max_rows: int = 8000) -> "Vocabulary":
         """k-means (OpenCV, k-means++ seeding, fixed seed) on at most ``max_rows`` descriptors."""
         X = np.concatenate([_as_float(d) for d in descs if len(d)], 0)
         if len(X) < k:
@@ -107,7 +111,7 @@ class Vocabulary:
         if len(X) > max_rows:
             X = X[rng.choice(len(X), max_rows, replace=False)]
         cv2.setRNGSeed(seed)
-        crit = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 20, 1e-3)
+        crit = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 10, 1e-3)
         _, _, centres = cv2.kmeans(X, k, None, crit, 1, cv2.KMEANS_PP_CENTERS)
         return Vocabulary(centres)
 
