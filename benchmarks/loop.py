@@ -360,8 +360,8 @@ def main(argv=None) -> int:
     ap.add_argument("--modes", type=lambda s: [x == "vi" for x in s.split(",")], default=[False, True],
                     help="revisit: vo,vi")
     ap.add_argument("--room-frames", type=int, default=300)
-    ap.add_argument("--street-length", type=float, default=800.0, help="street loop length asked for (m)")
-    ap.add_argument("--retrace", type=float, default=0.25)
+    ap.add_argument("--street-length", type=float, default=500.0, help="street loop length asked for (m)")
+    ap.add_argument("--retrace", type=float, default=0.3)
     ap.add_argument("--street-fps", type=float, default=10.0)
     ap.add_argument("--open-length", type=float, default=400.0)
     ap.add_argument("--cost-gaussians", type=int, default=120_000)

@@ -152,18 +152,23 @@ def _relative_pose_system(T_true, T_lin, sigma=0.01):
     return graph.linearize(vals).hessian(order)
 
 
-def test_smoother_converges_and_its_marginalisation_prior_is_the_schur_complement(motion):
-    m, imu, T_bc = motion
-    rng = np.random.default_rng(2)
-    params = gtsam_params(ImuNoiseConfig())
+def _keyframe_truth(m):
+    """Keyframe stamps every 0.1 s from 1 to 2.2 s, the motion's samples there and the true body poses."""
     kt = np.arange(1.0, 2.21, 0.1)
-    ns = (kt * 1e9).round().astype(np.int64)
     s = m.sample(kt)
     T_wb = []
     for R, p in zip(s.R, s.p):
         T = np.eye(4)
         T[:3, :3], T[:3, 3] = R, p
         T_wb.append(T)
+    return (kt * 1e9).round().astype(np.int64), s, T_wb
+
+
+def test_smoother_converges_and_its_marginalisation_prior_is_the_schur_complement(motion):
+    m, imu, T_bc = motion
+    rng = np.random.default_rng(2)
+    params = gtsam_params(ImuNoiseConfig())
+    ns, s, T_wb = _keyframe_truth(m)
     sm = WindowSmoother(params, T_bc)
     sm.start(NavEstimate(int(ns[0]), T_wb[0], s.v[0], np.zeros(3), np.zeros(3)), [1e-3] * 6, 1e-2, 0.1, 0.01)
     for k in range(1, len(ns)):
@@ -350,14 +355,7 @@ def test_a_loop_correction_moves_the_smoother_and_its_prior_with_the_states(moti
     prior left by marginalisation no longer pulls the states back), velocities rotated."""
     m, imu, T_bc = motion
     params = gtsam_params(ImuNoiseConfig())
-    kt = np.arange(1.0, 2.21, 0.1)
-    ns = (kt * 1e9).round().astype(np.int64)
-    s = m.sample(kt)
-    T_wb = []
-    for R, p in zip(s.R, s.p):
-        T = np.eye(4)
-        T[:3, :3], T[:3, 3] = R, p
-        T_wb.append(T)
+    ns, s, T_wb = _keyframe_truth(m)
     sm = WindowSmoother(params, T_bc)
     sm.start(NavEstimate(int(ns[0]), T_wb[0], s.v[0], np.zeros(3), np.zeros(3)), [1e-3] * 6, 1e-2, 0.1, 0.01)
     for k in range(1, len(ns)):

@@ -58,6 +58,25 @@ def _detector(kind: SeedFeatures, n: int):
     raise ValueError(f"no detector for seed features {kind!r}")
 
 
+def mutual_matches(d0: np.ndarray, d1: np.ndarray, norm: int, ratio: float) -> np.ndarray:
+    """Descriptor pairs ``(M, 2)`` (indices into ``d0``, ``d1``) that are mutual nearest neighbours
+    and pass Lowe's ratio test both ways, by OpenCV's brute-force k-NN matcher (``norm``:
+    ``cv2.NORM_HAMMING`` or ``cv2.NORM_L2``)."""
+    if d0 is None or d1 is None or len(d0) < 2 or len(d1) < 2:
+        return np.zeros((0, 2), np.int64)
+    bf = cv2.BFMatcher(norm)
+
+    def best(da, db):
+        out = {}
+        for m in bf.knnMatch(da, db, k=2):
+            if len(m) == 2 and m[0].distance < ratio * m[1].distance:
+                out[m[0].queryIdx] = m[0].trainIdx
+        return out
+
+    f, b = best(d0, d1), best(d1, d0)
+    return np.array(sorted((i, j) for i, j in f.items() if b.get(j) == i), np.int64).reshape(-1, 2)
+
+
 def match_features(g0: np.ndarray, g1: np.ndarray, kind: SeedFeatures, n_features: int = 1000,
                    ratio: float = 0.8) -> SparseMatches:
     """Detect ``kind`` features in the grey images ``g0``, ``g1`` (uint8 ``(H, W)``) and keep the
@@ -70,20 +89,10 @@ def match_features(g0: np.ndarray, g1: np.ndarray, kind: SeedFeatures, n_feature
     k1, d1 = det.detectAndCompute(np.ascontiguousarray(g1), None)
     if d0 is None or d1 is None or len(k0) < 2 or len(k1) < 2:
         return empty
-    bf = cv2.BFMatcher(norm)
-
-    def best(da, db):
-        out = {}
-        for m in bf.knnMatch(da, db, k=2):
-            if len(m) == 2 and m[0].distance < ratio * m[1].distance:
-                out[m[0].queryIdx] = m[0].trainIdx
-        return out
-
-    f, b = best(d0, d1), best(d1, d0)
-    pairs = [(i, j) for i, j in f.items() if b.get(j) == i]
-    if not pairs:
+    pairs = mutual_matches(d0, d1, norm, ratio)
+    if not len(pairs):
         return empty
-    i0, i1 = np.array(pairs).T
+    i0, i1 = pairs.T
     p0 = np.array([k.pt for k in k0], np.float64)[i0]
     p1 = np.array([k.pt for k in k1], np.float64)[i1]
     return SparseMatches(p0, p1)
