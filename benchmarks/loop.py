@@ -20,8 +20,9 @@ Runs are concurrent (the mapper in its thread, as ``vings run``) unless ``--sync
 * ``nofalse``: sequences without a revisit (``street`` open route with repeated facades,
   ``kitti06_snippet``, ``kitti07_160``, ``room --route oneway``): loops accepted (0 expected),
   candidates checked and rejected, and the rejections counted by reason.
-* ``long``: ``street --loop --length-m 1000 --retrace 0.2 --fps 10`` visual-only: the first loop's
-  candidate sources (``retrieval`` when the drift exceeded the radius) and the drift figures.
+* ``long``: ``street --loop --length-m 1000 --retrace 0.2 --fps 10`` visual-only with the loop
+  closer: the accepted loops' candidate sources (``retrieval`` when the drift exceeded the radius),
+  their distance at detection, and the drift figures.
 * ``cost``: the correction of a map of >= 100 k Gaussians (some passive): the pose exchange's
   increments applied by the mapper and the retrain with its prune, timed.
 
@@ -122,7 +123,7 @@ def _first_revisit(path: Path, gt) -> int:
 def _drift(traj, gt, k_revisit_stamp: int, metric: bool) -> float:
     """Position error at the frame ``k_revisit_stamp`` after aligning the trajectory's first 10 %
     to the truth (SE(3) when ``metric``, else Sim(3))."""
-    from vings_core.eval.align import apply_sim3, umeyama
+    from vings_core.eval.align import umeyama
     from vings_core.eval.traj import associate
     e, g = associate(traj, gt, max_dt_ns=5_000_000)
     n = max(3, len(e) // 10)
@@ -302,8 +303,13 @@ def exp_nofalse(a) -> dict:
 
 
 def exp_long(a) -> dict:
+    """The long loop with the loop closer on (the ``--no-loop`` run of ``revisit`` is its
+    reference for the drift figures): whether the loop joining the revisit came from retrieval and
+    how far the drift had carried the keyframe from its candidate."""
     p = _sim("street", "long_1000_0.2_s0", seed=0, loop=True, length_m=1000.0, retrace=0.2, fps=10.0)
-    return {"street_long_vo": _pair(p, "", False)}
+    r = _revisit_run(p, "", False, True)
+    r["radius"] = float(__import__("vings_core.loop", fromlist=["LoopConfig"]).LoopConfig().radius)
+    return {"street_long_vo": r}
 
 
 def exp_cost(a) -> dict:

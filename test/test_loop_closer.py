@@ -169,7 +169,7 @@ def _loop_run(tmp_path, render_ok: bool = True):
         if not render_ok:
             return None
         kf = _view(T_wc, tex, 1, extent=ext, cam=camera)
-        return {"color": kf.image.numpy(), "alpha": kf.valid.numpy().astype(np.float32)}
+        return {"color": kf.image.numpy(), "alpha": kf.valid.numpy().astype(np.float32), "depth": kf.depth.numpy()}
 
     closer = LoopCloser(cfg, render=render)
     prev = None
@@ -275,3 +275,29 @@ def test_a_correction_moves_every_gaussian_with_its_keyframe_incl_the_passive_st
         assert np.allclose(after.log_scales[j].double().numpy(), before.log_scales[i].double().numpy() + np.log(s),
                            atol=1e-5)
     del order_b
+
+
+def test_the_render_gives_the_dense_relative_scale():
+    """The current keyframe in units 1.5x smaller than the map's: the render check's dense ratio of
+    rendered to own depth gives the loop edge's scale, and the edge keeps PnP's rotation."""
+    from vings_core.loop.verify import render_check
+    tex = _texture(0)
+    T_o, T_n = _pose(0.0), _pose(0.25, 0.1, 0.05)
+    cfg = LoopConfig()
+    older = extract(_view(T_o, tex, 1_000), 0, cfg)
+    kf = _view(T_n, tex, 9_000, depth_scale=1 / 1.5)
+    newer = extract(kf, 40, cfg)
+    ch = Check(Candidate(1_000, 0, ("radius",), 0.3, 0.0))
+    assert solve_loop_pnp(older, newer, match_descriptors(older.desc, newer.desc, cfg.features, 0.8), K, cfg, ch)
+    R0 = ch.T_on[:3, :3] / sim3_scale(ch.T_on)
+
+    def render(T_wc, camera, older_than):
+        v = _view(T_wc, tex, 1, cam=camera)
+        return {"color": v.image.numpy(), "alpha": v.valid.numpy().astype(np.float32), "depth": v.depth.numpy()}
+
+    depth = kf.depth.numpy()
+    assert render_check(render, ch, kf.image.numpy(), CAM, None, cfg, depth)
+    assert ch.scale_source == "render" and ch.scale == pytest.approx(1.5, rel=0.005)
+    assert sim3_scale(ch.T_on) == pytest.approx(ch.scale) and np.allclose(ch.T_on[:3, :3] / ch.scale, R0)
+    assert ch.sigma_log_scale < 0.01 and ch.render_l1 < 0.05 and ch.coverage > 0.9
+    assert 0 < ch.sigma_rot < 0.05 and 0 < ch.sigma_pos < 0.2

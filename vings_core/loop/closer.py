@@ -41,6 +41,8 @@ class AcceptedLoop:
     newer_index: int
     T_on: np.ndarray
     sigma_pos: float
+    sigma_rot: float
+    sigma_scale: float
 
 
 class LoopCloser:
@@ -137,7 +139,9 @@ class LoopCloser:
                 if not solve_loop_pnp(older, e, pairs, K, cfg, ch):
                     continue
             with timed("loop", "render check"):
-                if not render_check(self.render, ch, image, kf.camera, self._older_than(e.index), cfg):
+                depth = np.where(kf.valid.detach().cpu().numpy(), kf.depth.detach().cpu().numpy(), 0.0)
+                if not render_check(self.render, ch, image, kf.camera, self._older_than(e.index), cfg,
+                                    depth.astype(np.float32)):
                     continue
             ch.passed = True
         passing = decide(checks, cfg)
@@ -149,9 +153,12 @@ class LoopCloser:
             rec = ch.record(e.stamp_ns)
             if ch is best:
                 older = self.db.get(ch.candidate.stamp_ns)
+                floor = cfg.loop_sigma_pos_median * max(older.median_depth, 1e-6)
                 accepted = AcceptedLoop(ch.candidate.stamp_ns, e.stamp_ns, ch.candidate.index, e.index,
                                         ch.T_on if not self._se3() else _rigid(ch.T_on),
-                                        cfg.loop_sigma_pos_median * max(older.median_depth, 1e-6))
+                                        max(floor, ch.sigma_pos or 0.0),
+                                        max(cfg.loop_sigma_rot, ch.sigma_rot or 0.0),
+                                        max(cfg.loop_sigma_scale, ch.sigma_log_scale or 0.0))
                 rec.update(verdict=Verdict.ACCEPTED.value, reason=ch.reason)
                 accepted_rec = rec
             else:
@@ -187,7 +194,7 @@ class LoopCloser:
         mode = GraphMode.SE3 if self._se3() else GraphMode.SIM3
         poses = {e.stamp_ns: e.T_wc for e in self.db.entries}
         edges = [LoopEdge(l.older, l.newer, l.T_on if mode == GraphMode.SIM3 else _rigid(l.T_on),
-                          cfg.loop_sigma_rot, l.sigma_pos, cfg.loop_sigma_scale) for l in self.loops]
+                          l.sigma_rot, l.sigma_pos, l.sigma_scale) for l in self.loops]
         with timed("loop", "pose graph"):
             res = optimize_pose_graph(poses, edges, mode, odo_sigma_rot=cfg.odo_sigma_rot,
                                   odo_sigma_pos_rel=cfg.odo_sigma_pos_rel, odo_sigma_pos_min=cfg.odo_sigma_pos_min,
@@ -230,7 +237,8 @@ class LoopCloser:
         f = self.follower
         return {"db": self.db.state_dict(),
                 "loops": [dict(older=l.older, newer=l.newer, older_index=l.older_index, newer_index=l.newer_index,
-                               T_on=l.T_on, sigma_pos=l.sigma_pos) for l in self.loops],
+                               T_on=l.T_on, sigma_pos=l.sigma_pos, sigma_rot=l.sigma_rot,
+                               sigma_scale=l.sigma_scale) for l in self.loops],
                 "records": list(self.records), "corrections": list(self.corrections), "stats": dict(self.stats),
                 "follower": {"seq": f.seq, "seen": f.seen, "keeper": dict(f.keeper)}}
 
@@ -238,7 +246,8 @@ class LoopCloser:
         from .database import KeyframeDatabase as _DB
         self.db = _DB.from_state(st["db"])
         self.loops = [AcceptedLoop(int(l["older"]), int(l["newer"]), int(l["older_index"]), int(l["newer_index"]),
-                                   np.asarray(l["T_on"], np.float64), float(l["sigma_pos"])) for l in st["loops"]]
+                                   np.asarray(l["T_on"], np.float64), float(l["sigma_pos"]), float(l["sigma_rot"]),
+                                   float(l["sigma_scale"])) for l in st["loops"]]
         self.records = list(st["records"])
         self.corrections = list(st.get("corrections", []))
         self.stats.update(st.get("stats", {}))

@@ -47,6 +47,10 @@ class Check:
     with_depth: int = 0
     inliers: int = 0
     scale: float = 1.0
+    scale_source: str = "keypoints"     #: ``keypoints`` (PnP inliers) or ``render`` (dense depth)
+    sigma_log_scale: Optional[float] = None
+    sigma_rot: Optional[float] = None   #: rad, from the PnP information
+    sigma_pos: Optional[float] = None   #: the current camera centre (older's units), from the PnP information
     render_l1: Optional[float] = None
     coverage: Optional[float] = None
     T_on: Optional[np.ndarray] = None
@@ -59,7 +63,10 @@ class Check:
         out = {"newer": int(newer), "older": int(c.stamp_ns), "older_index": int(c.index),
                "sources": list(c.sources), "distance": round(float(c.distance), 4),
                "bow_score": round(float(c.score), 4), "matches": self.matches, "with_depth": self.with_depth,
-               "inliers": self.inliers, "scale": round(float(self.scale), 5),
+               "inliers": self.inliers, "scale": round(float(self.scale), 5), "scale_source": self.scale_source,
+               "sigma_log_scale": None if self.sigma_log_scale is None else round(float(self.sigma_log_scale), 5),
+               "sigma_rot_deg": None if self.sigma_rot is None else round(float(np.degrees(self.sigma_rot)), 4),
+               "sigma_pos": None if self.sigma_pos is None else round(float(self.sigma_pos), 5),
                "render_l1": None if self.render_l1 is None else round(float(self.render_l1), 5),
                "coverage": None if self.coverage is None else round(float(self.coverage), 4)}
         return out
@@ -137,12 +144,13 @@ def solve_loop_pnp(older: KeyframeEntry, cur: KeyframeEntry, pairs: np.ndarray, 
         check.reason = "PnP: not finite"
         return False
     T_oc = np_pose_inverse(T_co)
+    check.sigma_rot, check.sigma_pos = _pnp_sigmas(X[inl], img[inl], K, rvec, tvec)
     # relative scale: the inliers' depth in the current camera (older units) over the current
-    # keyframe's own depth of them (its units)
+    # keyframe's own depth of them (its units); the render check replaces it by the dense one
     zc = (X[inl] @ T_co[:3, :3].T + T_co[:3, 3])[:, 2]
     dn = cur.depth[ic[inl]].astype(np.float64)
     good = (dn > 0) & (zc > 0)
-    s = float(np.median(zc[good] / dn[good])) if good.sum() >= 5 else 1.0
+    s, check.sigma_log_scale = _robust_log_ratio(zc[good] / dn[good]) if good.sum() >= 5 else (1.0, None)
     check.scale = s
     if abs(np.log(max(s, 1e-12))) > cfg.max_scale_change:
         check.reason = f"relative scale {s:.3g} beyond exp(+-{cfg.max_scale_change:g})"
@@ -150,6 +158,41 @@ def solve_loop_pnp(older: KeyframeEntry, cur: KeyframeEntry, pairs: np.ndarray, 
     check.T_on = sim3(T_oc[:3, :3], T_oc[:3, 3], s)
     check.T_wc_loop = older.T_wc @ T_oc
     return True
+
+
+def _robust_log_ratio(r: np.ndarray) -> tuple[float, float]:
+    """Median of positive ratios and the standard error of its log (1.4826 MAD, times 1.25 for
+    a median, over sqrt(n))."""
+    lr = np.log(r[r > 0])
+    med = float(np.median(lr))
+    mad = 1.4826 * float(np.median(np.abs(lr - med)))
+    return float(np.exp(med)), 1.25 * mad / np.sqrt(len(lr))
+
+
+def _pnp_sigmas(X: np.ndarray, img: np.ndarray, K: np.ndarray, rvec, tvec) -> tuple[float, float]:
+    """Standard deviations of the PnP pose from its Gauss-Newton information: the rotation (rad,
+    the largest axis) and the current camera's centre (the older keyframe's units, the largest
+    axis); the reprojection noise is the inliers' RMS residual (at least 0.5 px). The depth noise
+    of the 3D points is not in it: the loop edge's sigmas floor it (``loop_sigma_*``)."""
+    proj, J = cv2.projectPoints(X, rvec, tvec, K, None)
+    res = proj.reshape(-1, 2) - img
+    sig = max(float(np.sqrt((res ** 2).mean())), 0.5)
+    Jp = J[:, :6]                                         # d(u, v) / d(rvec, tvec)
+    try:
+        cov = sig ** 2 * np.linalg.inv(Jp.T @ Jp)
+    except np.linalg.LinAlgError:
+        return float("inf"), float("inf")
+    R = cv2.Rodrigues(rvec)[0]
+    # centre c = -R^T t; to first order (rotation perturbed on the left) dc = -R^T [t]x drot - R^T dt
+    Jc = np.zeros((3, 6))
+    Jc[:, :3] = -R.T @ _skew(np.asarray(tvec, np.float64).reshape(3))
+    Jc[:, 3:] = -R.T
+    cov_c = Jc @ cov @ Jc.T
+    return float(np.sqrt(np.linalg.eigvalsh(cov[:3, :3]).max())), float(np.sqrt(max(np.linalg.eigvalsh(cov_c).max(), 0)))
+
+
+def _skew(v: np.ndarray) -> np.ndarray:
+    return np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
 
 
 def scaled_camera(camera: CameraModel, f: int) -> CameraModel:
@@ -161,10 +204,13 @@ def scaled_camera(camera: CameraModel, f: int) -> CameraModel:
 
 
 def render_check(render: Optional[RenderFn], check: Check, image: np.ndarray, camera: CameraModel,
-                 older_than: Optional[int], cfg: LoopConfig) -> bool:
+                 older_than: Optional[int], cfg: LoopConfig, depth: Optional[np.ndarray] = None) -> bool:
     """Render the map from ``check.T_wc_loop`` at ``1/render_downscale`` of the resolution and
     compare with ``image`` ``(H, W, 3)`` in [0, 1] (area-averaged to that size): mean absolute error
-    over the pixels the map covers (alpha > 0.5) and that coverage. False (and a reason) without a
+    over the pixels the map covers (alpha > 0.5) and that coverage. With the current keyframe's
+    ``depth`` ``(H, W)`` (0: none) and a rendered depth, the loop's relative scale becomes the dense
+    one: the median ratio of rendered (older units) to own depth over the covered pixels (the
+    keypoints' ratio is kept when fewer than 100 pixels have both). False (and a reason) without a
     map or with too little coverage."""
     if render is None:
         check.reason = "no map to render"
@@ -185,6 +231,14 @@ def render_check(render: Optional[RenderFn], check: Check, image: np.ndarray, ca
         return False
     diff = np.abs(np.asarray(out["color"], np.float32) - image[..., :3])
     check.render_l1 = float(diff[cov].mean())
+    if depth is not None and out.get("depth") is not None and check.T_on is not None:
+        d = depth if f == 1 else cv2.resize(depth, (cam.width, cam.height), interpolation=cv2.INTER_NEAREST)
+        dr = np.asarray(out["depth"], np.float64)
+        both = cov & (d > 0) & (dr > 0)
+        if int(both.sum()) >= 100:
+            s, sig = _robust_log_ratio(dr[both] / d[both])
+            check.T_on = sim3(check.T_on[:3, :3] / check.scale, check.T_on[:3, 3], s)
+            check.scale, check.sigma_log_scale, check.scale_source = s, sig, "render"
     return True
 
 
