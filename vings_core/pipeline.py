@@ -295,6 +295,7 @@ class SlamRunner:
             self.loop = LoopCloser(lcfg, render=self._loop_render,
                                    metric=lambda: self.vio is not None and self.vio.state == ViState.VISUAL_INERTIAL)
         self._loop_ack = 0
+        self.loop_error: Optional[str] = None
         self.retrains: list[dict] = []
         self.out.prepare()      # after the configuration is known to be valid, before any work
         self._queue.discard_leftovers()     # of a killed earlier run (runs do not resume)
@@ -322,11 +323,17 @@ class SlamRunner:
         return self.mapper.render(T_wc, camera, owners_before=older_than)
 
     def _close_loops(self, kf: Keyframe) -> None:
-        """The loop closer after the keyframe was mapped; its correction goes to the keeper."""
-        if self.loop is None or self._abort:
+        """The loop closer after the keyframe was mapped; its correction goes to the keeper. A
+        failure of the loop closer stops it (logged, ``loops.json`` says why), never the mapping."""
+        if self.loop is None or self._abort or self.loop_error is not None:
             return
-        with timed("loop", "keyframe (total)"):
-            self.loop.add_keyframe(kf)
+        try:
+            with timed("loop", "keyframe (total)"):
+                self.loop.add_keyframe(kf)
+        except Exception as e:  # noqa: BLE001 - the loop closer is optional: tracking and mapping go on
+            log.exception("the loop closer failed at keyframe %d; it is off for the rest of the run", kf.stamp_ns)
+            self.loop_error = f"failed at keyframe {kf.stamp_ns}: {type(e).__name__}: {e}"
+            return
         batch = self.loop.poll()
         if batch is not None:
             with self._lock:
@@ -346,7 +353,7 @@ class SlamRunner:
                     self._kf_queued.release()
         else:  # "poses": the keeper's batch (front-end moves, accepted and refused increments)
             self.follower.receive(item)
-            if self.loop is not None:
+            if self.loop is not None and self.loop_error is None:
                 self.loop.receive(item)
                 lc = self.loop.cfg
                 self._loop_ack, re = retrain_after_loop(self.mapper, item, self._loop_ack, lc.retrain_iters,
@@ -708,7 +715,7 @@ class SlamRunner:
         if self.loop is None:
             return None
         return {"candidates": self.loop.records, "corrections": self.loop.corrections,
-                "retrains": self.retrains, "summary": self.loop.summary()}
+                "retrains": self.retrains, "summary": self.loop.summary(), "error": self.loop_error}
 
     def _vi_metrics(self) -> dict:
         """``vi_*``, ``scale_observable``, biases and the time offset for metrics.json."""
