@@ -5,9 +5,13 @@ runs :func:`vings_core.stages.map_keyframe` on :class:`vings_core.mapping.Mapper
 ``vings run`` uses, following the same pose exchange (:class:`vings_core.exchange.PoseFollower`). It
 checkpoints the map after its first keyframe, every N keyframes, every T seconds while the map
 changes, and on shutdown, atomically, and resumes from the checkpoint at start
-(``mapper_node.checkpoint_path``, ``mapper_node.resume``) in the same world frame. Settings: params
-sections ``mapper_node`` (node_config.MapperNodeConfig), ``ros`` and ``mapping``. Topics and
-parameters: docs/ros.md.
+(``mapper_node.checkpoint_path``, ``mapper_node.resume``) in the same world frame. It answers the
+loop closer's render requests (``/vings/render/request`` -> ``/vings/render/reply/*``,
+msg_adapters/loop.py) in its worker thread, between keyframes and between training chunks (never
+while training), and after a keeper batch that first acknowledges a new loop correction it retrains
+the revisited region (:func:`vings_core.stages.retrain_after_loop`, section ``loop``). Settings:
+params sections ``mapper_node`` (node_config.MapperNodeConfig), ``ros``, ``mapping`` and ``loop``.
+Topics and parameters: docs/ros.md.
 """
 from __future__ import annotations
 
@@ -26,25 +30,30 @@ from visualization_msgs.msg import MarkerArray
 from msg_adapters import topics as T
 from msg_adapters.image import float_image_to_msg, image_to_msg, rgb_float_to_uint8
 from msg_adapters.keyframe import PART_TOPICS, KeyframeAssembler
+from msg_adapters.loop import (RENDER_REQUEST_TOPIC, REPLY_TOPICS, RenderRequest, msg_to_render_request,
+                               render_reply_to_msgs)
 from msg_adapters.markers import keyframe_frustums_marker, marker_array, trajectory_marker
 from msg_adapters.pointcloud import points_to_pointcloud2
 from msg_adapters.exchange import batch_to_path, exchange_topic
 from msg_adapters.pose import trajectory_to_path
-from vings_core.errors import InputError
+from vings_core.errors import InputError, VingsError
 from vings_core.exchange import IncrementBatch, PoseFollower
 from vings_core.exchange.config import KEEPER
 from vings_core.keyframe_queue import KeyframeQueue
 from vings_core.mapping import Mapper, MapperConfig
-from vings_core.stages import MAPPER_SOURCE, map_keyframe
+from vings_core.loop import LOOP_SOURCE, LoopConfig
+from vings_core.stages import MAPPER_SOURCE, map_keyframe, retrain_after_loop
 from vings_core.types import Keyframe, Trajectory
 
 from . import registry
 from .node_base import BatchInbox, Level, NodeStatus, StageNode
 from .node_common import RateMeter, worth_reporting
-from .node_config import MapperNodeConfig
+from .node_config import MapperNodeConfig, QueuePolicy
 
-#: training iterations between two checks for shutdown / a due checkpoint
+#: training iterations between two checks for shutdown / a due checkpoint / render requests
 TRAIN_CHUNK = 5
+#: render requests waiting for the worker (older ones are dropped: their requester has moved on)
+RENDER_QUEUE = 8
 
 
 def lower_priority(nice: int, threads: int) -> None:
@@ -74,6 +83,7 @@ class MapperNode(StageNode):
 
     def setup(self) -> None:
         self.mcfg: MapperConfig = self.config("mapping")
+        self.lcfg: LoopConfig = self.config("loop")
         lower_priority(self.settings.nice, self.settings.threads)
         self._exchange_setup()
         self.mapper = self._load_or_new()
@@ -87,6 +97,12 @@ class MapperNode(StageNode):
         self.keyframes_mapped = 0
         self.light_keyframes = 0        # trained lightly to catch up (mapping.catch_up_backlog)
         self.bad_parts = 0
+        self._loop_ack = 0              # the last loop-closer batch the keeper acknowledged
+        self.retrains: list[dict] = []
+        self.renders_answered = 0
+        self.bad_render_requests = 0
+        # render requests of the loop closer: answered by the worker between its steps
+        self.render_requests = self.input_queue(QueuePolicy.BACKPRESSURE, RENDER_QUEUE)
 
         sq = T.sensor_qos
         for part, type_ in (("image", Image), ("depth", Image), ("inv_depth_var", Image),
@@ -99,6 +115,8 @@ class MapperNode(StageNode):
         self.pub_points = self.create_publisher(PointCloud2, T.MAP_POINTS_TOPIC, T.latched_qos(1))
         self.pub_refined = self.create_publisher(Path, T.REFINED_KEYFRAMES_TOPIC, T.latched_qos(1))
         self.pub_markers = self.create_publisher(MarkerArray, T.MARKERS_TOPIC, T.latched_qos(1))
+        self.pub_reply = {p: self.create_publisher(Image, topic, sq(T.OUTPUT_DEPTH)) for p, topic in REPLY_TOPICS.items()}
+        self.create_subscription(PoseStamped, RENDER_REQUEST_TOPIC, self._on_render_request, sq(T.OUTPUT_DEPTH))
 
     def ready_message(self) -> str:
         return (f"mapper ready: {len(self.mapper.keyframe_poses())} keyframes, "
@@ -140,12 +158,24 @@ class MapperNode(StageNode):
         if kf is not None:
             self.queue.put("kf", kf)
 
+    def _on_render_request(self, msg: PoseStamped) -> None:
+        try:
+            req = msg_to_render_request(msg, RENDER_REQUEST_TOPIC)
+        except InputError as e:
+            self.bad_render_requests += 1
+            if worth_reporting(self.bad_render_requests):
+                self.get_logger().warning(f"ignored a malformed render request ({self.bad_render_requests} so "
+                                          f"far): {e}")
+            return
+        self.render_requests.put(req)
+
     # ----------------------------------------------------------------------------- the worker
 
     def step(self) -> None:
         msg = self.queue.get(timeout=0.1)
         kf: Optional[Keyframe] = None if msg is None else msg[1]
         self._exchange_receive()
+        self._answer_renders()
         if kf is None:
             self.maybe_checkpoint(idle=True)
             return
@@ -165,8 +195,10 @@ class MapperNode(StageNode):
 
     def _map(self, kf: Keyframe) -> None:
         def stop() -> bool:
-            # between training chunks: front-end updates, a due periodic checkpoint, shutdown
+            # between training chunks: front-end updates, render requests, a due periodic
+            # checkpoint, shutdown
             self._exchange_receive()
+            self._answer_renders()
             self.maybe_checkpoint(idle=False)
             return self._abort.is_set()
 
@@ -194,6 +226,27 @@ class MapperNode(StageNode):
             self.save_checkpoint(f"keyframe {self.keyframes_mapped}")
         else:
             self.maybe_checkpoint(idle=False)
+
+    def _answer_renders(self) -> None:
+        """The loop closer's render requests (worker thread, between training chunks): the map from
+        the request's pose with its camera (none given: the mapper's keyframe camera), the
+        Gaussians of keyframes older than the request's bound; three 0 x 0 images when there is no
+        map yet."""
+        while True:
+            req: Optional[RenderRequest] = self.render_requests.get(timeout=0)
+            if req is None:
+                return
+            out = None
+            cam = req.camera or self.mapper.state.camera
+            if cam is not None and self.mapper.num_gaussians:
+                try:
+                    out = self.mapper.render(req.T_wc, cam, owners_before=req.older_than)
+                except VingsError as e:     # a pose the renderer refuses: answered as "no map"
+                    self.bad_render_requests += 1
+                    self.get_logger().warning(f"render request {req.request_id}: {e}")
+            for part, m in render_reply_to_msgs(req.request_id, out, self.ros.camera_frame).items():
+                self.pub_reply[part].publish(m)
+            self.renders_answered += 1
 
     def _kf_traj(self) -> Trajectory:
         return Trajectory.from_poses(self.mapper.keyframe_poses())
@@ -233,7 +286,9 @@ class MapperNode(StageNode):
                   "gaussians_passive": self.mapper.num_passive, "queue_length": self.queue.keyframes,
                   "queue_on_disk": self.queue.keyframes_on_disk,
                   "keyframe_rate_hz": self.rate.hz, "incomplete_packets": self.assembler.pending,
-                  "dropped_packets": self.assembler.dropped, "checkpoints": self.checkpoints}
+                  "dropped_packets": self.assembler.dropped, "checkpoints": self.checkpoints,
+                  "renders_answered": self.renders_answered, "bad_render_requests": self.bad_render_requests,
+                  "loop_retrains": len(self.retrains)}
         return NodeStatus(Level.OK, "mapping", values)
 
     # ---------------------------------------------------------------------------- checkpoints
@@ -267,6 +322,22 @@ class MapperNode(StageNode):
     def _exchange_receive(self) -> None:
         for batch in self.inbox.take():
             self.follower.receive(batch)
+            self._retrain_after_loop(batch)
+
+    def _retrain_after_loop(self, batch: IncrementBatch) -> None:
+        """As ``vings run`` after each keeper batch: when it first acknowledges a new loop-closer
+        batch, a short retrain of the revisited region and a prune (section ``loop``)."""
+        if not self.lcfg.enabled:
+            return
+        lc = self.lcfg
+        self._loop_ack, re = retrain_after_loop(self.mapper, batch, self._loop_ack, lc.retrain_iters,
+                                                lc.retrain_max_s, lc.prune_after, source=LOOP_SOURCE)
+        if re is not None:
+            self.retrains.append(re)
+            self.mark_changed()
+            self.get_logger().info(f"loop correction: map retrained {re['retrain_iters']} iterations over "
+                                   f"{re['retrain_views']} views in {re.get('retrain_s', 0.0):.2f} s, "
+                                   f"{re['loop_pruned']} pruned")
 
     def _exchange_send(self, batch: Optional[IncrementBatch]) -> None:
         if batch is not None:

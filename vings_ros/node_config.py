@@ -133,6 +133,41 @@ class MapperNodeConfig(CheckpointSettings):
             raise ValueError("max_points and render_every_keyframes must be >= 0")
 
 
+
+@dataclass
+class LoopCloserNodeConfig(CheckpointSettings):
+    """``loop_closer_node`` settings (params section ``loop_closer_node``), besides the checkpoint
+    ones (:class:`CheckpointSettings`: the keyframe database, accepted loops, records and the
+    exchange state, written atomically; resumed at start).
+
+    ``render_timeout_s``: how long a render request waits for the mapper's reply; a reply that
+    does not come counts as "no map to render" (the candidate is rejected, the node goes on). The
+    mapper answers between training chunks, but not during its retrain after a loop (up to
+    ``loop.retrain_max_s``): keep the timeout above that.
+    ``queue_memory_keyframes``: received keyframes waiting for the loop closer held in memory;
+    later ones wait on disk in a private temporary folder (none is dropped while the node runs).
+    ``output_dir``: folder of ``loops.json`` ("" = none), rewritten atomically after an accepted
+    loop, at most every ``report_period_s`` seconds otherwise while candidates are checked, and at
+    shutdown. ``nice``: niceness the process adds to itself, so tracking wins the CPU (0 = off)."""
+
+    render_timeout_s: float = 30.0
+    queue_memory_keyframes: int = 8
+    output_dir: str = ""
+    report_period_s: float = 5.0
+    nice: int = 10
+
+    def validate(self) -> None:
+        super().validate()
+        if not self.render_timeout_s > 0:
+            raise ValueError(f"render_timeout_s must be > 0, got {self.render_timeout_s}")
+        if self.queue_memory_keyframes < 1:
+            raise ValueError(f"queue_memory_keyframes must be >= 1, got {self.queue_memory_keyframes}")
+        if self.report_period_s < 0:
+            raise ValueError(f"report_period_s must be >= 0, got {self.report_period_s}")
+        if not 0 <= self.nice <= 19:
+            raise ValueError(f"nice must be in 0..19, got {self.nice}")
+
+
 #: ``ros.<key>`` names of node settings that live in a node's own section: a params file or ``-p``
 #: that uses one gets an error naming the section's key instead of "unknown parameter"
 MOVED_PARAMETERS = {

@@ -14,6 +14,7 @@ from pathlib import Path
 from typing import Optional
 
 from msg_adapters import topics as T
+from msg_adapters.loop import LOOP_CONSTRAINTS_TOPIC
 from vings_core.errors import ConfigError, VingsError
 from vings_core.util import fsync_path
 
@@ -38,6 +39,7 @@ OUTPUT_TOPICS = [
     (T.EXCHANGE_TOPIC_PREFIX + "mapper", "nav_msgs/msg/Path", False),
     (T.EXCHANGE_TOPIC_PREFIX + "loop_closer", "nav_msgs/msg/Path", False),
     (T.MARKERS_TOPIC, "visualization_msgs/msg/MarkerArray", True),
+    (LOOP_CONSTRAINTS_TOPIC, "nav_msgs/msg/Path", True),
     (T.DIAGNOSTICS_TOPIC, "diagnostic_msgs/msg/DiagnosticArray", False),
 ]
 
