@@ -301,3 +301,30 @@ def test_the_render_gives_the_dense_relative_scale():
     assert sim3_scale(ch.T_on) == pytest.approx(ch.scale) and np.allclose(ch.T_on[:3, :3] / ch.scale, R0)
     assert ch.sigma_log_scale < 0.01 and ch.render_l1 < 0.05 and ch.coverage > 0.9
     assert 0 < ch.sigma_rot < 0.05 and 0 < ch.sigma_pos < 0.2
+
+
+def test_a_loop_needs_consecutive_keyframes_that_agree():
+    closer = LoopCloser(LoopConfig(confirmations=2, confirm_window=5))
+    ch = lambda older: Check(Candidate(older, older, ("radius",), 0.0, 0.0))  # noqa: E731
+    assert not closer._confirmed(ch(10), 50)
+    assert closer._confirmed(ch(12), 51)              # the next keyframe, a candidate 2 further on
+    assert not closer._confirmed(ch(10), 60)
+    assert not closer._confirmed(ch(30), 61)          # the next keyframe, but another place
+    assert not closer._confirmed(ch(31), 63)          # not the next keyframe
+    assert closer._confirmed(ch(33), 64)
+
+
+def test_a_loop_pose_beyond_the_drift_of_odometry_is_refused():
+    cfg = LoopConfig()
+    closer = LoopCloser(cfg)
+    tex = _texture(1)
+    for i in range(12):                                # a straight path of 0.1 per keyframe: 1.1 in all
+        closer.db.add(extract(_view(_pose(0.1 * i), tex, 1_000 * (i + 1)), i, cfg), cfg)
+    e = closer.db.entries[-1]
+    c = Check(Candidate(1_000, 0, ("retrieval",), 0.0, 0.0))
+    c.T_wc_loop = _pose(0.1 * 11 + 0.2)                # 0.2 off: 0.3 x 1.1 + 4 (its median depth) allows it
+    assert closer._implausible(c, e) is None
+    c.T_wc_loop = _pose(0.1 * 11 + 6.0)
+    assert "odometry drifts at most" in closer._implausible(c, e)
+    c.T_wc_loop = _pose(1.1, 0.0, np.radians(45))
+    assert "turned 45.0 deg" in closer._implausible(c, e)

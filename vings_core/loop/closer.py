@@ -67,6 +67,7 @@ class LoopCloser:
         self.records: list[dict] = []
         self.corrections: list[dict] = []
         self._out: list[IncrementBatch] = []
+        self._verified: list[tuple[int, int]] = []     # (keyframe, candidate) indices awaiting confirmation
         self.stats = dict(keyframes=0, candidates_checked=0, rejected=0, accepted=0,
                           detect_s=0.0, correct_s=0.0, max_detect_s=0.0)
 
@@ -143,11 +144,18 @@ class LoopCloser:
                 if not render_check(self.render, ch, image, kf.camera, self._older_than(e.index), cfg,
                                     depth.astype(np.float32)):
                     continue
+            why = self._implausible(ch, e)
+            if why is not None:
+                ch.reason = why
+                continue
             ch.passed = True
         passing = decide(checks, cfg)
         best = passing[0] if passing else None
         for ch in passing[1:]:
             ch.reason = f"{ch.reason}, but candidate {best.candidate.stamp_ns} rendered better"
+        if best is not None and not self._confirmed(best, e.index):
+            best.reason = f"{best.reason}; waits for confirmation by the next keyframe"
+            best = None
         accepted, accepted_rec = None, None
         for ch in checks:
             rec = ch.record(e.stamp_ns)
@@ -167,6 +175,36 @@ class LoopCloser:
         self.stats["candidates_checked"] += len(checks)
         self.stats["rejected"] += len(checks) - int(accepted is not None)
         return None if accepted is None else (accepted, accepted_rec)
+
+    def _implausible(self, ch: Check, e) -> Optional[str]:
+        """A verified loop pose farther from the current pose than odometry can drift: more than
+        ``max_drift_fraction`` of the path travelled since the candidate (plus one median depth of
+        the current keyframe), or turned by more than ``max_drift_rot_deg``."""
+        cfg = self.cfg
+        P = self.db.positions()
+        path = float(np.linalg.norm(np.diff(P[ch.candidate.index:e.index + 1], axis=0), axis=1).sum())
+        shift = float(np.linalg.norm(ch.T_wc_loop[:3, 3] - e.T_wc[:3, 3]))
+        limit = cfg.max_drift_fraction * path + e.median_depth
+        if shift > limit:
+            return f"loop pose {shift:.3g} from the current one, odometry drifts at most {limit:.3g} over {path:.3g}"
+        R = ch.T_wc_loop[:3, :3].T @ e.T_wc[:3, :3]
+        ang = float(np.degrees(np.arccos(np.clip((np.trace(R) - 1) / 2, -1, 1))))
+        if ang > cfg.max_drift_rot_deg:
+            return f"loop pose turned {ang:.1f} deg from the current one (at most {cfg.max_drift_rot_deg:g})"
+        return None
+
+    def _confirmed(self, ch: Check, index: int) -> bool:
+        """Whether the revisit was verified by ``confirmations`` consecutive keyframes, each with a
+        candidate within ``confirm_window`` keyframes of the previous one's."""
+        cfg = self.cfg
+        run = self._verified if self._verified and index - self._verified[-1][0] <= 1 else []
+        if run and abs(ch.candidate.index - run[-1][1]) > cfg.confirm_window:
+            run = []
+        self._verified = run + [(index, ch.candidate.index)]
+        if len(self._verified) >= cfg.confirmations:
+            self._verified = []
+            return True
+        return False
 
     def _refuse(self, ch: Check, index: int) -> Optional[str]:
         """The temporal and geometric acceptance rules; why the loop is refused (None: accepted)."""

@@ -75,6 +75,14 @@ class LoopConfig:
     min_span_keyframes: int = 20          #: older and newer at least this many keyframes apart
     min_spacing_keyframes: int = 5        #: keyframes between two accepted loops
     max_scale_change: float = 0.5         #: largest |log| relative scale of a loop edge
+    max_scale_disagreement: float = 0.15  #: largest |log| ratio of the render's and the keypoints' scale
+    max_drift_fraction: float = 0.3       #: the loop pose may be at most this fraction of the path
+                                          #: travelled since the candidate (plus its median depth)
+                                          #: from the current pose: more drift is not odometry's
+    max_drift_rot_deg: float = 30.0       #: ... and turned by at most this much
+    confirmations: int = 2                #: consecutive keyframes that must verify the revisit
+                                          #: (candidates within confirm_window keyframes of each other)
+    confirm_window: int = 5
     # ---- correction
     graph: GraphChoice = GraphChoice.AUTO
     odo_sigma_rot: float = 0.02           #: odometry edge: rotation std (rad)
@@ -101,6 +109,10 @@ class LoopConfig:
         for name in pos_int:
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+        for name in ("max_scale_disagreement", "max_drift_fraction", "max_drift_rot_deg", "confirmations",
+                     "confirm_window"):
+            if getattr(self, name) <= 0:
+                raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
         for name in ("radius", "pnp_max_depth_median", "pnp_ransac_px", "render_l1_max", "odo_sigma_rot",
                      "odo_sigma_pos_rel", "odo_sigma_pos_min", "odo_sigma_scale", "loop_sigma_rot",
                      "loop_sigma_pos_median", "loop_sigma_scale", "robust_k", "max_scale_change"):

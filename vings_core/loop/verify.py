@@ -237,6 +237,12 @@ def render_check(render: Optional[RenderFn], check: Check, image: np.ndarray, ca
         both = cov & (d > 0) & (dr > 0)
         if int(both.sum()) >= 100:
             s, sig = _robust_log_ratio(dr[both] / d[both])
+            if abs(np.log(s / check.scale)) > cfg.max_scale_disagreement:
+                check.reason = f"scale: render {s:.3g} and keypoints {check.scale:.3g} disagree"
+                return False
+            if abs(np.log(s)) > cfg.max_scale_change:
+                check.reason = f"relative scale {s:.3g} (render) beyond exp(+-{cfg.max_scale_change:g})"
+                return False
             check.T_on = sim3(check.T_on[:3, :3] / check.scale, check.T_on[:3, 3], s)
             check.scale, check.sigma_log_scale, check.scale_source = s, sig, "render"
     return True
