@@ -239,10 +239,15 @@ def _revisit_run(path: Path, tag: str, use_imu: bool, use_loop: bool) -> dict:
     return out
 
 
+VARIANTS = ("loop", "noloop")
+
+
 def _pair(path: Path, tag: str, use_imu: bool) -> dict:
-    on = _revisit_run(path, tag, use_imu, True)
-    off = _revisit_run(path, tag, use_imu, False)
+    on = _revisit_run(path, tag, use_imu, True) if "loop" in VARIANTS else None
+    off = _revisit_run(path, tag, use_imu, False) if "noloop" in VARIANTS else None
     res = {"loop": on, "no_loop": off}
+    if on is None or off is None:
+        return res
     if off["drift_m"] and on["drift_m"] is not None:
         res["drift_drop"] = round(1.0 - on["drift_m"] / off["drift_m"], 4)
     if off["ate_m"] and on["ate_m"] is not None:
@@ -372,9 +377,11 @@ def main(argv=None) -> int:
     ap.add_argument("--open-length", type=float, default=400.0)
     ap.add_argument("--cost-gaussians", type=int, default=120_000)
     ap.add_argument("--sync", action="store_true", help="runs with --sync (deterministic, slower)")
+    ap.add_argument("--variants", default="loop,noloop", help="revisit: loop,noloop (the runs of each pair)")
     a = ap.parse_args(argv)
-    global SYNC
+    global SYNC, VARIANTS
     SYNC = a.sync
+    VARIANTS = tuple(a.variants.split(","))
     table = {"revisit": lambda: exp_revisit(a), "nofalse": lambda: exp_nofalse(a), "long": lambda: exp_long(a),
              "cost": lambda: exp_cost(a)}
     return run_selected(ap, a, table, log)
