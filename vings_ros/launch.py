@@ -80,6 +80,7 @@ class Launcher:
         self.out = out or sys.stderr
         self.procs: dict[str, subprocess.Popen] = {}
         self._stopping = False
+        self._gone: set[str] = set()        # optional nodes that exited; the graph went on
         if opt.checkpoint:
             opt.extra_params.setdefault("mapper_node.checkpoint_path", str(Path(opt.checkpoint).resolve()))
         names = list(default_nodes() if opt.nodes is None else opt.nodes)
@@ -127,7 +128,7 @@ class Launcher:
     def poll(self) -> Optional[str]:
         """Name of a node that has exited, if any."""
         for name, p in self.procs.items():
-            if p.poll() is not None:
+            if name not in self._gone and p.poll() is not None:
                 return name
         return None
 
@@ -163,7 +164,8 @@ class Launcher:
                 self._say(f"the recorder's partial recording is in {f} (not moved to {out})")
 
     def run(self) -> int:
-        """Start, watch until a node dies or SIGINT/SIGTERM/SIGHUP; returns the exit code."""
+        """Start, watch until a node dies (an optional one's exit is reported and the others go on)
+        or SIGINT/SIGTERM/SIGHUP; returns the exit code."""
         stop_requested = []
 
         def _sig(signum, frame):  # noqa: ARG001
@@ -175,6 +177,10 @@ class Launcher:
             self.start()
             while not stop_requested:
                 dead = self.poll()
+                if dead is not None and any(n.name == dead and n.optional for n in registry.NODES):
+                    self._gone.add(dead)
+                    self._say(f"{dead} exited with code {self.procs[dead].returncode}; the graph goes on without it")
+                    continue
                 if dead is not None:
                     rc = self.procs[dead].returncode
                     self._say(f"{dead} exited with code {rc}; stopping the graph")

@@ -34,6 +34,8 @@ class NodeSpec:
     = no settings. ``reads``: the library sections it builds configs from (``frontend``,
     ``mapping``, ``run``, ...). ``stop_timeout_s``: how long ``vings launch`` waits after SIGINT
     before it kills the node (settings with ``shutdown_timeout_s`` extend it, see launch.py).
+    ``optional``: the graph goes on without it when it exits (``vings launch`` reports the exit and
+    keeps the other nodes running), as tracking and mapping do without the loop closer.
     """
 
     name: str
@@ -42,6 +44,7 @@ class NodeSpec:
     reads: tuple[str, ...] = ()
     stop_timeout_s: float = 20.0
     launch: Launch = Launch.ALWAYS
+    optional: bool = False
 
 
 NODES: tuple[NodeSpec, ...] = (
@@ -50,7 +53,7 @@ NODES: tuple[NodeSpec, ...] = (
     NodeSpec("mapper_node", "vings_ros.mapper_node", "vings_ros.node_config:MapperNodeConfig",
              reads=("mapping", "loop"), stop_timeout_s=180.0),
     NodeSpec("loop_closer_node", "vings_ros.loop_closer_node", "vings_ros.node_config:LoopCloserNodeConfig",
-             reads=("loop",), stop_timeout_s=60.0),
+             reads=("loop",), stop_timeout_s=60.0, optional=True),
     NodeSpec("recorder_node", "vings_ros.recorder", launch=Launch.ON_REQUEST),
 )
 
