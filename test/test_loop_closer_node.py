@@ -114,6 +114,7 @@ import os
 ck, out = sys.argv[1], sys.argv[2]
 rclpy.init(args=["x", "--ros-args", "-p", "loop.min_gap_keyframes:=3", "-p", "loop.min_span_keyframes:=3",
                  "-p", "loop.min_spacing_keyframes:=1", "-p", "loop.vocabulary_after:=50", "-p", "loop.graph:=sim3",
+                 "-p", "loop.confirmations:=1",
                  "-p", f"loop_closer_node.checkpoint_path:={ck}", "-p", f"loop_closer_node.output_dir:={out}",
                  "-p", "loop_closer_node.render_timeout_s:=20.0", "-p", "loop_closer_node.checkpoint_period_s:=0.0",
                  "-p", "ros.diagnostics_period_s:=0.2"])
@@ -408,7 +409,7 @@ def test_loop_checkpoint_file_round_trips_the_closer_state(tmp_path):
     scene = types.ModuleType("scene")
     exec(SCENE, scene.__dict__)
     cfg = LoopConfig(min_gap_keyframes=3, min_span_keyframes=3, vocabulary_after=3, vocabulary_words=16,
-                     graph="sim3")
+                     graph="sim3", confirmations=1)
 
     def render(T, cam, older):
         color, depth = scene.render_plane(T, cam)
