@@ -313,7 +313,8 @@ def exp_long(a) -> dict:
     how far the drift had carried the keyframe from its candidate."""
     p = _sim("street", "long_1000_0.2_s0", seed=0, loop=True, length_m=1000.0, retrace=0.2, fps=10.0)
     r = _revisit_run(p, "", False, True)
-    r["radius"] = float(__import__("vings_core.loop", fromlist=["LoopConfig"]).LoopConfig().radius)
+    from vings_core.loop import LoopConfig
+    r["radius"] = float(LoopConfig().radius)
     return {"street_long_vo": r}
 
 

@@ -181,8 +181,8 @@ class LoopCloser:
         ``max_drift_fraction`` of the path travelled since the candidate (plus one median depth of
         the current keyframe), or turned by more than ``max_drift_rot_deg``."""
         cfg = self.cfg
-        P = self.db.positions()
-        path = float(np.linalg.norm(np.diff(P[ch.candidate.index:e.index + 1], axis=0), axis=1).sum())
+        P = np.array([x.T_wc[:3, 3] for x in self.db.entries[ch.candidate.index:e.index + 1]]).reshape(-1, 3)
+        path = float(np.linalg.norm(np.diff(P, axis=0), axis=1).sum())
         shift = float(np.linalg.norm(ch.T_wc_loop[:3, 3] - e.T_wc[:3, 3]))
         limit = cfg.max_drift_fraction * path + e.median_depth
         if shift > limit:
@@ -281,8 +281,7 @@ class LoopCloser:
                 "follower": {"seq": f.seq, "seen": f.seen, "keeper": dict(f.keeper)}}
 
     def load_state_dict(self, st: dict) -> None:
-        from .database import KeyframeDatabase as _DB
-        self.db = _DB.from_state(st["db"])
+        self.db = KeyframeDatabase.from_state(st["db"])
         self.loops = [AcceptedLoop(int(l["older"]), int(l["newer"]), int(l["older_index"]), int(l["newer_index"]),
                                    np.asarray(l["T_on"], np.float64), float(l["sigma_pos"]), float(l["sigma_rot"]),
                                    float(l["sigma_scale"])) for l in st["loops"]]
