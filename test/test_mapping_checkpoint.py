@@ -60,12 +60,18 @@ def _mapper(tmp_path: Path) -> Mapper:
 
 
 def _write_old(m: Mapper, path: Path, version: int, v_shared: bool = True) -> None:
-    """``m`` saved as the code of checkpoint ``version`` (1 to 5) saved it; all say "version": 1."""
+    """``m`` saved as the code of checkpoint ``version`` (1 to 6) saved it; 1 to 5 all say
+    "version": 1."""
     cur = path.with_name("current.npz")
     m.save_checkpoint(cur)
     with np.load(cur) as z:
-        e = {k: z[k] for k in z.files if not k.endswith("/owner_s")}        # pending scales: version 6
-    e["meta"] = np.frombuffer(json.dumps({**json.loads(bytes(e["meta"]).decode()), "version": 1}).encode(), np.uint8)
+        e = {k: z[k] for k in z.files if not k.endswith("/dynamic")}        # dynamic masks: version 7
+    if version <= 5:                     # pending scales: version 6
+        e = {k: a for k, a in e.items() if not k.endswith("/owner_s")}
+        for k in ("hist/scale_stamps", "hist/scale"):
+            e.pop(k, None)
+    e["meta"] = np.frombuffer(json.dumps({**json.loads(bytes(e["meta"]).decode()),
+                                          "version": 1 if version <= 5 else version}).encode(), np.uint8)
     if version <= 4:                     # Gauss-Newton step counts: version 5
         del e["pose_gn/stamps"], e["pose_gn/steps"]
     if version <= 3:                     # one entry set per passive chunk: version 4
@@ -124,14 +130,16 @@ def _assert_same_mapper(m: Mapper, m2: Mapper, gn_steps: dict, v_shared: np.ndar
     assert torch.equal(m.rng.get_state(), m2.rng.get_state())
 
 
-@pytest.mark.parametrize("version,v_shared", [(1, False), (1, True), (2, True), (3, True), (4, True), (5, True)])
+@pytest.mark.parametrize("version,v_shared", [(1, False), (1, True), (2, True), (3, True), (4, True), (5, True),
+                                              (6, True)])
 def test_each_earlier_version_loads_through_its_migrations(tmp_path, version, v_shared):
     m = _mapper(tmp_path)
     path = tmp_path / f"v{version}.npz"
     _write_old(m, path, version, v_shared)
     with np.load(path) as npz:
-        assert json.loads(bytes(npz["meta"]).decode())["version"] == 1
-        assert stored_version({"version": 1}, Entries(npz, path), path) == version
+        assert json.loads(bytes(npz["meta"]).decode())["version"] == (1 if version <= 5 else version)
+        meta = json.loads(bytes(npz["meta"]).decode())
+        assert stored_version(meta, Entries(npz, path), path) == version
     m2 = Mapper.load_checkpoint(path)
     _assert_same_mapper(m, m2, gn_steps=m.refiner.gn_steps if version >= 5 else {},
                         v_shared=m.refiner.adam_v if v_shared else np.zeros(7))

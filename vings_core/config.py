@@ -46,6 +46,7 @@ LIBRARY_SECTIONS: dict[str, str] = {
     "run": "vings_core.pipeline:RunConfig",
     "exchange": "vings_core.exchange:ExchangeConfig",
     "loop": "vings_core.loop:LoopConfig",
+    "eraser": "vings_core.eraser:EraserConfig",
 }
 
 #: parameters rclpy itself declares or reads (``qos_overrides.*`` too): not a VINGS section

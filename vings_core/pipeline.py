@@ -34,6 +34,7 @@ from .errors import InputError, VingsError
 from .eval.image import psnr, ssim
 from .eval.output import CHECKPOINT_FILE, RUN_RENDER_PREFIX, RunOutput, metrics_template, peak_rss_mb  # noqa: F401
 from .eval.traj import evaluate_trajectory
+from .eraser.mask_io import encode_mask_png
 from .exchange import ExchangeConfig, IncrementBatch, PoseFollower, PoseKeeper
 from .geometry import rotation_angle_deg
 from .io.base import Source, SourceOptions
@@ -228,11 +229,15 @@ class SlamRunner:
                  run_cfg: Optional[RunConfig] = None, progress: bool = True,
                  on_frame: Optional[Callable[[dict], None]] = None,
                  stages: tuple[RunnerStage, ...] = (), exchange_cfg: Optional[ExchangeConfig] = None,
-                 vio_cfg: Optional["ViConfig"] = None, loop_cfg: Optional["LoopConfig"] = None) -> None:
+                 vio_cfg: Optional["ViConfig"] = None, loop_cfg: Optional["LoopConfig"] = None,
+                 eraser_cfg: Optional["EraserConfig"] = None) -> None:
         """``vio_cfg``: the visual-inertial fusion's configuration (default: section ``vio`` of the
         params file; ``enabled=False`` is ``--no-imu``). ``loop_cfg``: the loop closer's (default:
         section ``loop``; ``enabled=False`` is ``--no-loop``); the loop closer runs in the mapper's
-        thread after each mapped keyframe, its renders from the map as trained."""
+        thread after each mapped keyframe, its renders from the map as trained. ``eraser_cfg``: the
+        dynamic eraser's (default: section ``eraser``; ``enabled=False`` is ``--no-eraser``); it
+        runs in the mapper's thread on each keyframe before its Gaussians are added, and its mask
+        goes to the mapper at once and to the front end for its next frame."""
         from .frontend import Frontend, FrontendConfig
         from .mapping import Mapper, MapperConfig
         from .vio.config import ViConfig
@@ -297,12 +302,19 @@ class SlamRunner:
         self._loop_ack = 0
         self.loop_error: Optional[str] = None
         self.retrains: list[dict] = []
+        from .eraser import DynamicEraser, EraserConfig
+        ecfg = eraser_cfg or load_section(EraserConfig, "eraser", params_file)
+        self.eraser: Optional[DynamicEraser] = DynamicEraser(ecfg) if ecfg.enabled else None
+        self.eraser_error: Optional[str] = None
+        self.eraser_results: list[dict] = []     # per keyframe: EraserResult.summary()
+        self._masks: dict[int, bytes] = {}       # stamp -> PNG (mono8), written at the end
         self.out.prepare()      # after the configuration is known to be valid, before any work
         self._queue.discard_leftovers()     # of a killed earlier run (runs do not resume)
 
     # --------------------------------------------------------------------------- mapping side
 
     def _map_keyframe(self, kf: Keyframe) -> None:
+        kf = self._erase(kf)
         stats, batch = map_keyframe(self.mapper, self.follower, kf, refine=self.frontend is not None,
                                     chunk=10, stop=lambda: self._abort, backlog=self._backlog())
         self.light_keyframes += int(stats.get("light", False))
@@ -314,6 +326,31 @@ class SlamRunner:
             # the previous run's checkpoint.pt stays until this run completes
             self.mapper.save_checkpoint(self.out.partial_checkpoint_path)
             self._partial_ckpt = True
+
+    def _erase(self, kf: Keyframe) -> Keyframe:
+        """The dynamic eraser on keyframe ``kf`` (mapper thread), on the map rendered at its pose
+        before its Gaussians are added: the keyframe with its mask for the mapper, the mask posted
+        to the front end and kept for ``masks/``. A failing eraser stops itself (logged,
+        ``metrics.json`` ``eraser_error``); mapping goes on without masks."""
+        if self.eraser is None or self.eraser_error is not None or self._abort:
+            return kf
+        try:
+            with timed("eraser", "keyframe (total)"):
+                with timed("eraser", "render"):
+                    render = (self.mapper.render(kf.T_wc.detach().cpu().numpy(), kf.camera)
+                              if self.mapper.num_gaussians else None)
+                res = self.eraser.process(kf, render)
+        except Exception as e:  # noqa: BLE001 - the eraser is optional: tracking and mapping go on
+            log.exception("the dynamic eraser failed at keyframe %d; it is off for the rest of the run", kf.stamp_ns)
+            self.eraser_error = f"failed at keyframe {kf.stamp_ns}: {type(e).__name__}: {e}"
+            return kf
+        self.eraser_results.append(res.summary())
+        self._masks[int(kf.stamp_ns)] = encode_mask_png(res.mask)
+        if not res.mask.any():
+            return kf
+        if self.frontend is not None:
+            self.frontend.post_dynamic_mask(kf.stamp_ns, res.mask)
+        return replace(kf, dynamic=torch.from_numpy(res.mask))
 
     def _loop_render(self, T_wc: np.ndarray, camera, older_than: Optional[int]) -> Optional[dict]:
         """The loop closer's renders (mapper thread): the map from ``T_wc``, Gaussians of keyframes
@@ -676,6 +713,11 @@ class SlamRunner:
                 log.warning("%d of %d frames have no pose: %s", n_unposed, n_frames, why)
         if self.frontend is not None:
             m.update(self._vi_metrics())
+        if self.eraser is not None:
+            er = self.eraser_results
+            m.update(masked_fraction=float(np.mean([r["masked_fraction"] for r in er])) if er else 0.0,
+                     eraser_ms_mean=float(np.mean([r["time_ms"] for r in er])) if er else None,
+                     eraser_error=self.eraser_error)
         if self.loop is not None:
             ls = self.loop.summary()
             m.update(loops_accepted=ls["loops_accepted"], loop_candidates_rejected=ls["loop_candidates_rejected"],
@@ -747,6 +789,8 @@ class SlamRunner:
             self.mapper.save_checkpoint(out.staging_path(out.checkpoint_path))
             for name, rgb in final["renders"].items():
                 out.save_render(name, rgb, staged=True)
+            for stamp, png in self._masks.items():
+                out.write_mask(stamp, png, staged=True)
             out.begin_final()
             out.commit_staged()     # milliseconds of renames
         except BaseException:

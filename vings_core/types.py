@@ -277,6 +277,8 @@ class Keyframe:
     * ``valid``: bool ``(H, W)``: depth usable for mapping.
     * ``camera``: undistorted model at the working resolution.
     * ``index``: running keyframe number (informational; identity is the stamp).
+    * ``dynamic``: bool ``(H, W)``, True where the dynamic eraser found a moving object (kept out
+      of every mapping loss and of new Gaussians), or None (no mask).
     """
 
     stamp_ns: int
@@ -287,15 +289,18 @@ class Keyframe:
     valid: torch.Tensor
     camera: CameraModel
     index: int = -1
+    dynamic: Optional[torch.Tensor] = None
 
     def __post_init__(self) -> None:
         self.stamp_ns = _as_int(self.stamp_ns, "Keyframe.stamp_ns")
         self.index = _as_int(self.index, "Keyframe.index")
         self.T_wc = torch.as_tensor(self.T_wc, dtype=torch.float64).reshape(4, 4)
         H, W = self.camera.height, self.camera.width
-        for name in ("image", "depth", "inv_depth_var", "valid"):
+        if self.dynamic is not None:
+            self.dynamic = torch.as_tensor(self.dynamic).to(torch.bool)
+        for name in ("image", "depth", "inv_depth_var", "valid", "dynamic"):
             t = getattr(self, name)
-            if tuple(t.shape[:2]) != (H, W):
+            if t is not None and tuple(t.shape[:2]) != (H, W):
                 raise ValueError(f"Keyframe.{name} has shape {tuple(t.shape)}, expected ({H}, {W}, ...)"
                                  f" from the camera model")
 

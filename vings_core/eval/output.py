@@ -9,6 +9,7 @@ An output folder holds::
     metrics.json     one object with exactly the keys of METRIC_KEYS (null where not applicable)
     loops.json       every loop candidate checked (stamps, figures, verdict, reason) and each correction
     renders/         PNG renders (uint8 RGB)
+    masks/           the dynamic eraser's masks, masks/kf_<stamp>.png (mono8, 255 = dynamic)
 
 Every file is written atomically (temp file + rename).
 """
@@ -39,6 +40,7 @@ SEGMENTS_DIR = "trajectory_segments"
 LOOPS_FILE = "loops.json"
 METRICS_FILE = "metrics.json"
 RENDERS_DIR = "renders"
+MASKS_DIR = "masks"
 CHECKPOINT_FILE = "checkpoint.pt"
 # a run in progress writes these; the previous complete run's files stay untouched until the end
 CHECKPOINT_PARTIAL_FILE = "checkpoint.partial.pt"
@@ -59,11 +61,12 @@ METRIC_KEYS = (
     "vi_state", "vi_initialised_at_s", "scale_observable", "acc_bias", "gyro_bias", "td_s",
     "td_estimates", "imu_only_frames", "vi_error",
     "loops_accepted", "loop_candidates_rejected", "loop_detect_ms_mean",
+    "masked_fraction", "eraser_ms_mean", "eraser_error",
 )
 _INT_KEYS = {"frames", "frames_tracked", "keyframes", "num_gaussians", "keyframes_light",
              "queue_peak_keyframes", "queue_spilled", "frames_unposed", "segments", "td_estimates",
              "imu_only_frames", "loops_accepted", "loop_candidates_rejected"}
-_STR_KEYS = {"frames_unposed_reason", "vi_state", "vi_error"}
+_STR_KEYS = {"frames_unposed_reason", "vi_state", "vi_error", "eraser_error"}
 _BOOL_KEYS = {"scale_observable"}
 _LIST_KEYS = {"ate_segments_m", "acc_bias", "gyro_bias"}
 #: Keys of :func:`vings_core.eval.traj.evaluate_trajectory`'s result that go into metrics.json.
@@ -209,16 +212,17 @@ class RunOutput:
         """At the end of a run, before its final files: remove what would make the previous run's
         outputs look like this run's: ``metrics.json`` (written last: its presence marks a
         complete run), the runner's renders ``renders/kf_*.png`` (other files there are not
-        ours and stay), the segment trajectories ``trajectory_segments/segment_*.tum`` and
-        ``loops.json`` (a run without the loop closer has none). The other files are replaced when
+        ours and stay), the eraser's masks ``masks/kf_*.png``, the segment trajectories
+        ``trajectory_segments/segment_*.tum`` and ``loops.json`` (a run without the loop closer has none). The other files are replaced when
         written."""
         try:
             for p in (self.metrics_path, self.out_dir / LOOPS_FILE):
                 if p.exists():
                     p.unlink()
-            if self.renders_dir.is_dir():
-                for p in self.renders_dir.glob(f"{RUN_RENDER_PREFIX}*.png"):
-                    p.unlink()
+            for d in (self.renders_dir, self.masks_dir):
+                if d.is_dir():
+                    for p in d.glob(f"{RUN_RENDER_PREFIX}*.png"):
+                        p.unlink()
             seg_dir = self.out_dir / SEGMENTS_DIR      # the previous run may have had more segments
             if seg_dir.is_dir():
                 for p in seg_dir.glob("segment_*.tum"):
@@ -332,6 +336,17 @@ class RunOutput:
         path = self.out_dir / LOOPS_FILE
         atomic_write_text(self.staging_path(path) if staged else path,
                           json.dumps(_clean(loops, LOOPS_FILE), indent=2, allow_nan=False) + "\n")
+        return path
+
+    @property
+    def masks_dir(self) -> Path:
+        return self.out_dir / MASKS_DIR
+
+    def write_mask(self, stamp_ns: int, png: bytes, staged: bool = False) -> Path:
+        """``masks/kf_<stamp>.png``: one keyframe's dynamic mask, already PNG-encoded (mono8,
+        255 = dynamic, the working resolution)."""
+        path = self.masks_dir / f"{RUN_RENDER_PREFIX}{int(stamp_ns)}.png"
+        atomic_write_bytes(self.staging_path(path) if staged else path, bytes(png))
         return path
 
     def write_metrics(self, metrics: dict) -> dict:

@@ -81,7 +81,7 @@ class FrontendContext:
         self.reason = "waiting for the first frame"
         self.events: list[str] = []
         self.stats = {"frames": 0, "keyframes": 0, "segments": 1, "lost_frames": 0, "imu_only_frames": 0,
-                      "jumps": 0, "relocalisations": 0, "seeded": 0, "t_flow": 0.0, "t_track": 0.0, "t_ba": 0.0,
+                      "jumps": 0, "relocalisations": 0, "seeded": 0, "dynamic_masks": 0, "dynamic_masks_late": 0, "t_flow": 0.0, "t_track": 0.0, "t_ba": 0.0,
                       "t_emit": 0.0, "t_seed": 0.0, "t_total": 0.0}
         self.max_mean_flow_lr = 0.0
         self.motion_detected = False

@@ -18,6 +18,7 @@ its reference keyframe, so it follows later corrections of that keyframe (window
 """
 from __future__ import annotations
 
+import collections
 import logging
 import time
 from contextlib import contextmanager
@@ -111,6 +112,8 @@ class Frontend:
         self.chain_est, self.info_scale = ctx.chain_est, ctx.info_scale
         self.stats: dict = ctx.stats
         self.events: list[str] = ctx.events
+        # dynamic masks from the eraser (any thread) -> applied before the next frame
+        self._masks: collections.deque = collections.deque()
 
     # ------------------------------------------------------------------- shared state views
 
@@ -186,6 +189,7 @@ class Frontend:
         revised estimates of the frames that waited for it."""
         t0 = time.perf_counter()
         self._check_frame(frame)
+        self._apply_dynamic_masks()
         gray = frame.gray()
         self.stats["frames"] += 1
         if self.vio is not None:
@@ -200,6 +204,20 @@ class Frontend:
         self._last_stamp = frame.stamp_ns
         self.stats["t_total"] += time.perf_counter() - t0
         return out
+
+    def post_dynamic_mask(self, stamp_ns: int, mask: np.ndarray) -> None:
+        """The eraser's mask of keyframe ``stamp_ns`` (``(H, W)`` bool, True = moving object), from
+        any thread; the front end never waits for it. Applied before the next frame: the
+        keyframe's grid points on the mask (and flow targets landing on it) get weight 0 in the
+        dense BA and tracking while the keyframe is in the window; a mask for a keyframe that has
+        left the window is counted (``stats["dynamic_masks_late"]``) and dropped."""
+        self._masks.append((int(stamp_ns), np.asarray(mask, dtype=bool)))
+
+    def _apply_dynamic_masks(self) -> None:
+        while self._masks:
+            s, m = self._masks.popleft()
+            applied = self.win.set_dynamic(s, m)
+            self.stats["dynamic_masks" if applied else "dynamic_masks_late"] += 1
 
     def add_imu(self, sample: ImuSample) -> bool:
         """One IMU reading (body frame, REP-145 units) for the fusion; ``False`` when refused

@@ -138,9 +138,10 @@ class MotionTracker:
             ctx.stats["t_flow"] += time.perf_counter() - t
         self.flow = TrackFlow(kf.stamp, f01, init)
         t = time.perf_counter()
+        w = gf.weight if kf.static is None else gf.weight * kf.static     # the eraser's mask: weight 0
         mo = BA.motion_only(kf.T_cw[None], kf.d[None], ctx.rays,
                             torch.from_numpy(gf.target)[None],
-                            torch.from_numpy(gf.weight)[None] * ctx.info_scale, ctx.K, T_pred,
+                            torch.from_numpy(w)[None] * ctx.info_scale, ctx.K, T_pred,
                             iters=cfg.track_iters, loss=cfg.robust_loss,
                             delta=cfg.robust_delta_px,
                             d_var=None if kf.var is None else kf.var[None])

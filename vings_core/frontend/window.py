@@ -31,7 +31,9 @@ class WindowKeyframe:
     """A keyframe in the window: its image (``gray``, ``rgb``), grid texture weight ``tex``
     ``(h, w)``, pose ``T_cw`` ``(4, 4)``, grid inverse depth ``d`` ``(P,)`` and its marginal
     variance ``var`` ``(P,)`` (``None`` before the first uncertainty pass); ``index`` is the running
-    keyframe number, ``segment`` the map segment it belongs to."""
+    keyframe number, ``segment`` the map segment it belongs to. ``dynamic``: the eraser's mask
+    ``(H, W)`` bool (True = moving object) once it arrived, and ``static`` ``(P,)`` float64 its grid
+    points' weight (0 on the mask, 1 elsewhere); None without a mask."""
 
     stamp: int
     index: int
@@ -43,6 +45,8 @@ class WindowKeyframe:
     var: Optional[torch.Tensor] = None
     segment: int = 0
     emitted: bool = False
+    dynamic: Optional[np.ndarray] = None
+    static: Optional[np.ndarray] = None
 
 
 @dataclass
@@ -183,12 +187,50 @@ class KeyframeWindow:
         self.graph.add(Edge(o.stamp, new.stamp, pair.fwd.target, pair.fwd.weight))
         self.graph.add(Edge(new.stamp, o.stamp, pair.bwd.target, pair.bwd.weight))
 
+    def edge_tensors(self, stamps: list[int]):
+        """The graph's edges among ``stamps`` (:meth:`CovisibilityGraph.tensors`) with the dynamic
+        masks applied: weight 0 for a grid point of keyframe ``i`` on its mask, and for one whose
+        flow target lands on keyframe ``j``'s mask (the object hides the point there)."""
+        ii, jj, tg, wt = self.graph.tensors(stamps)
+        by = {k.stamp: k for k in self.keyframes if k.dynamic is not None}
+        if not by or not len(ii):
+            return ii, jj, tg, wt
+        wt = wt.clone()
+        H, W = self.ctx.H, self.ctx.W
+        for e, (i, j) in enumerate(zip(ii.tolist(), jj.tolist())):     # a loop over edges, not pixels
+            ki, kj = by.get(stamps[i]), by.get(stamps[j])
+            if ki is not None:
+                wt[e] *= torch.from_numpy(ki.static)
+            if kj is not None:
+                t = tg[e].numpy()
+                ok = np.isfinite(t).all(-1)
+                u = np.clip(np.round(np.where(ok, t[:, 0], 0)), 0, W - 1).astype(np.int64)
+                v = np.clip(np.round(np.where(ok, t[:, 1], 0)), 0, H - 1).astype(np.int64)
+                wt[e] *= torch.from_numpy((~(kj.dynamic[v, u] & ok)).astype(np.float64))
+        return ii, jj, tg, wt
+
+    def set_dynamic(self, stamp: int, mask: np.ndarray) -> bool:
+        """Keyframe ``stamp``'s dynamic mask (``(H, W)`` bool): its grid points on the mask get
+        weight 0 in every later window BA and tracking step. False when the keyframe is no longer
+        in the window."""
+        for k in self.keyframes:
+            if k.stamp == int(stamp):
+                m = np.asarray(mask, dtype=bool)
+                if m.shape != (self.ctx.H, self.ctx.W):
+                    raise ValueError(f"dynamic mask of keyframe {stamp} has shape {m.shape}, expected "
+                                     f"{(self.ctx.H, self.ctx.W)}")
+                uv = np.round(self.ctx.uv_np).astype(np.int64)
+                k.dynamic = m
+                k.static = (~m[uv[:, 1].clip(0, self.ctx.H - 1), uv[:, 0].clip(0, self.ctx.W - 1)]).astype(np.float64)
+                return True
+        return False
+
     def bundle_adjust(self, iters: int) -> Optional[BA.BAResult]:
         """Window BA (``iters`` LM iterations); the refined poses and depths are written to the
         window and the pose buffer. ``None`` (nothing written) when the BA diverges."""
         cfg, ctx = self.ctx.cfg, self.ctx
         stamps = [k.stamp for k in self.keyframes]
-        ii, jj, tg, wt = self.graph.tensors(stamps)
+        ii, jj, tg, wt = self.edge_tensors(stamps)
         T = torch.stack([k.T_cw for k in self.keyframes])
         d = torch.stack([k.d for k in self.keyframes])
         t = time.perf_counter()
@@ -217,7 +259,7 @@ class KeyframeWindow:
         cfg, ctx = self.ctx.cfg, self.ctx
         stamps = [k.stamp for k in self.keyframes]
         if r_ne is None:
-            ii, jj, tg, wt = self.graph.tensors(stamps)
+            ii, jj, tg, wt = self.edge_tensors(stamps)
             T = torch.stack([k.T_cw for k in self.keyframes])
             d = torch.stack([k.d for k in self.keyframes])
             r_ne = BA.assemble(T, d, ii, jj, ctx.rays, tg, wt * ctx.info_scale, ctx.K,
@@ -262,7 +304,7 @@ class KeyframeWindow:
         it when it leaves the window (kept as a prior by a smoother)."""
         cfg, ctx = self.ctx.cfg, self.ctx
         stamps = [k.stamp for k in self.keyframes]
-        ii, jj, tg, wt = self.graph.tensors(stamps)
+        ii, jj, tg, wt = self.edge_tensors(stamps)
         m = (ii == pos) | (jj == pos)
         if not bool(m.any()):
             return None

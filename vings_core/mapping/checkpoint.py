@@ -1,13 +1,14 @@
 """Map checkpoints: a mapper's whole state in one ``.npz`` (an uncompressed zip of ``.npy``
 entries), restored bit-exactly, with a layout version.
 
-Version 6 (:data:`CHECKPOINT_VERSION`, written) holds the entries
+Version 7 (:data:`CHECKPOINT_VERSION`, written) holds the entries
 
 * ``meta``: JSON (``version``, ``config``, ``camera``, ``render_count``, ``kf_count``, the training
   and refinement rounds ``queue`` / ``rqueue``, the score ``slots``, ``window`` size, ``counters``);
 * ``active/<field>``: the active Gaussians (:data:`~.gaussians.ALL_FIELDS`); ``rng_state``;
 * ``kf/stamps`` (K,) int64 and ``kf/T_wc`` (K, 4, 4) float64 camera-to-world, in insertion order;
-* ``win<i>/{stamp, index, image, T_wc, depth, inv_depth_var, valid, loss_map}``: window keyframes;
+* ``win<i>/{stamp, index, image, T_wc, depth, inv_depth_var, valid, dynamic, loss_map}``: window
+  keyframes (``dynamic``: the eraser's mask, ``(0, 0)`` when the keyframe has none);
 * ``pose_adam/{stamps, m, v, steps, v_shared}`` and ``pose_gn/{stamps, steps}``: refinement state;
 * ``pchunk/count`` and per passive chunk ``pchunk/<k>/<field>``, ``pchunk/<k>/owners``,
   ``pchunk/<k>/owner_T`` (owner poses when stored) and ``pchunk/<k>/owner_s`` (pending scales);
@@ -23,7 +24,9 @@ into the next one's (:data:`MIGRATIONS`):
    (``passive_chunks/{chunk, owner_chunk, owners, owner_T}``);
 3. history records one entry each (``hist/<stamp>/<field>``);
 4. the passive store one entry set per chunk (``pchunk/...``);
-5. Gauss-Newton step counts (``pose_gn/...``).
+5. Gauss-Newton step counts (``pose_gn/...``);
+6. pending scales (``pchunk/<k>/owner_s``, ``hist/scale_stamps``, ``hist/scale``);
+7. dynamic masks (``win<i>/dynamic``, ``hist/<stamp>/dynamic``).
 
 Files of versions 1 to 5 all say ``"version": 1`` in their meta; :func:`stored_version` tells them
 apart by their entries. A file of a newer (or unknown) version is refused with an
@@ -50,10 +53,13 @@ from .config import MapperConfig
 from .gaussians import ALL_FIELDS, GaussianMap
 from .history import FIELDS as HISTORY_FIELDS
 
+#: the history record fields before version 7 (no dynamic mask)
+HISTORY_FIELDS_V6 = ("image", "depth", "inv_depth_var", "valid")
+
 if TYPE_CHECKING:
     from .mapper import Mapper
 
-CHECKPOINT_VERSION = 6
+CHECKPOINT_VERSION = 7
 
 _META_KEYS = ("config", "camera", "window", "render_count", "kf_count", "queue", "rqueue", "slots",
               "counters")
@@ -113,6 +119,7 @@ def _state_entries(m: "Mapper") -> dict[str, np.ndarray]:
         d[f"win{i}/index"] = np.array(kf.index, dtype=np.int64)
         for k in ("image", "T_wc", "depth", "inv_depth_var", "valid"):
             d[f"win{i}/{k}"] = getattr(kf, k).cpu().numpy()
+        d[f"win{i}/dynamic"] = (np.zeros((0, 0), bool) if kf.dynamic is None else kf.dynamic.cpu().numpy())
         d[f"win{i}/loss_map"] = (st.loss_maps[kf.stamp_ns].numpy() if kf.stamp_ns in st.loss_maps
                                  else np.zeros((0, 0), np.float32))
     meta = {"version": CHECKPOINT_VERSION, "config": asdict(st.cfg), "render_count": st.render_count,
@@ -242,7 +249,8 @@ def _restore_window(m: "Mapper", z: "Entries", n: int) -> None:
         kf = Keyframe(stamp_ns=int(z[p + "stamp"]), image=torch.from_numpy(z[p + "image"]),
                       T_wc=torch.from_numpy(z[p + "T_wc"]), depth=torch.from_numpy(z[p + "depth"]),
                       inv_depth_var=torch.from_numpy(z[p + "inv_depth_var"]),
-                      valid=torch.from_numpy(z[p + "valid"]), camera=st.camera, index=int(z[p + "index"]))
+                      valid=torch.from_numpy(z[p + "valid"]), camera=st.camera, index=int(z[p + "index"]),
+                      dynamic=torch.from_numpy(z[p + "dynamic"]) if z[p + "dynamic"].size else None)
         st.window.append(kf)
         lm = z[p + "loss_map"]
         if lm.size:
@@ -306,11 +314,11 @@ def _v1_to_v2(z: Entries) -> None:
 
 def _v2_to_v3(z: Entries) -> None:
     """History records stacked (``hist/<field>``) become one entry each (``hist/<stamp>/<field>``)."""
-    stacked = {k: z[f"hist/{k}"] for k in HISTORY_FIELDS}
+    stacked = {k: z[f"hist/{k}"] for k in HISTORY_FIELDS_V6}
     for j, s in enumerate(z["hist/stamps"].tolist()):
-        for k in HISTORY_FIELDS:
+        for k in HISTORY_FIELDS_V6:
             z.add(f"hist/{s}/{k}", np.array(stacked[k][j]))
-    for k in HISTORY_FIELDS:
+    for k in HISTORY_FIELDS_V6:
         z.drop(f"hist/{k}")
 
 
@@ -346,6 +354,16 @@ def _v5_to_v6(z: Entries) -> None:
     z.add("hist/scale", np.zeros(0, dtype=np.float64))
 
 
+def _v6_to_v7(z: Entries) -> None:
+    """No dynamic masks: window keyframes get none, history records an all-False one."""
+    i = 0
+    while f"win{i}/stamp" in z:
+        z.add(f"win{i}/dynamic", np.zeros((0, 0), bool))
+        i += 1
+    for s in z["hist/stamps"].tolist():
+        z.add(f"hist/{s}/dynamic", np.zeros(z[f"hist/{s}/valid"].shape, bool))
+
+
 #: version -> the migration of its entries to the next version's
 MIGRATIONS: dict[int, Callable[[Entries], None]] = {1: _v1_to_v2, 2: _v2_to_v3, 3: _v3_to_v4, 4: _v4_to_v5,
-                                                    5: _v5_to_v6}
+                                                    5: _v5_to_v6, 6: _v6_to_v7}

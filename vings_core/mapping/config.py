@@ -114,6 +114,9 @@ class MapperConfig:
     loop_prune_contribution: float = 0.01  # after a loop correction's retrain: an active Gaussian in
                                        # front of a retrained view whose summed contribution
                                        # (sum alpha T) over those views is below this is pruned
+    erase_owner_keyframes: int = 8    # a keyframe's dynamic mask erases the Gaussians inside it
+                                       # whose ID(g) keyframe is among this many latest keyframes
+                                       # (what a moving object left before it was caught)
 
     # ---- storage tiers (paper "GPU-CPU transfer")
     delta_k: int = 8                   # tier update every n keyframes
@@ -198,6 +201,8 @@ class MapperConfig:
             raise ValueError(f"sc_view_floor must be in [0, 1], got {self.sc_view_floor}")
         if self.max_active < 1:
             raise ValueError("max_active must be >= 1")
+        if self.erase_owner_keyframes < 0:
+            raise ValueError(f"erase_owner_keyframes must be >= 0, got {self.erase_owner_keyframes}")
         if not self.loop_prune_contribution >= 0:
             raise ValueError(f"loop_prune_contribution must be >= 0, got {self.loop_prune_contribution}")
         if not (self.passive_memory_mb >= 0 and self.history_memory_mb >= 0):

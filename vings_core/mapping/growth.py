@@ -19,7 +19,7 @@ from ..types import CameraModel, Keyframe
 from ..util import log
 from .gaussians import GaussianMap
 from .init import (depth_normals, empty_mask, fill_depth, gaussians_from_pixels, num_to_add, sample_pixels,
-                   usable_depth_mask)
+                   static_mask, usable_depth_mask)
 from .losses import l1_map
 from .state import MapState
 from ..profiling import profiled
@@ -89,7 +89,7 @@ def densify(st: MapState, kf: Keyframe) -> dict:
     # unknown (dropped as uncertain, not known empty) at depth interpolated from the usable ones
     seed, seed_depth = usable, depth
     if cfg.fill_unknown_depth and bool(usable.any()):
-        unknown = ~usable & ~empty_mask(kf, cfg.max_depth)
+        unknown = ~usable & ~empty_mask(kf, cfg.max_depth) & static_mask(kf)
         if bool(unknown.any()):
             seed = usable | unknown
             seed_depth = fill_depth(depth, usable)

@@ -1,7 +1,7 @@
 """History store: keyframes that left the mapper's local window, kept for history training.
 
 A record is a keyframe in compact form (:func:`compact_keyframe`: RGB uint8, depth and
-inverse-depth variance float16, validity bool; ~0.6 MB at 376x240), keyed by the keyframe's stamp.
+inverse-depth variance float16, validity and the dynamic mask bool; ~0.7 MB at 376x240), keyed by the keyframe's stamp.
 Records live in host memory up to ``memory_budget_bytes``; beyond it the least recently used ones
 are written to ``.npz`` files (once: records never change) and read back when training samples
 them, so a long run's history costs disk, not memory. A file found missing or damaged is reported
@@ -21,19 +21,22 @@ from ..types import CameraModel, Keyframe
 from ..util import log
 from .storage import SpillFolder
 
-FIELDS = ("image", "depth", "inv_depth_var", "valid")
+FIELDS = ("image", "depth", "inv_depth_var", "valid", "dynamic")
 
 
 def compact_keyframe(kf: Keyframe) -> dict:
     """``kf`` as a history record: RGB as uint8 (the inputs are 8-bit images), depth and
-    inverse-depth variance as float16, validity as bool, plus its running ``index``."""
+    inverse-depth variance as float16, validity and the dynamic mask (all False without one) as
+    bool, plus its running ``index``."""
     return {"image": torch.round(kf.image.clamp(0, 1) * 255).to(torch.uint8),
             # (a depth beyond float16's range stays "far", not inf: inf / inf in the depth loss is NaN)
             "depth": kf.depth.clamp(max=65504.0).to(torch.float16),
             # float16 overflows above 65504 (the front end sends up to 1e10 for "unknown"): clamp, a
             # standard deviation of 256 1/m is as unusable as infinity
             "inv_depth_var": kf.inv_depth_var.clamp(0, 65504.0).to(torch.float16),
-            "valid": kf.valid.clone(), "index": int(kf.index)}
+            "valid": kf.valid.clone(),
+            "dynamic": (torch.zeros_like(kf.valid, dtype=torch.bool) if kf.dynamic is None else kf.dynamic.clone()),
+            "index": int(kf.index)}
 
 
 def scale_keyframe_depth(kf: Keyframe, k: float) -> None:
@@ -48,7 +51,7 @@ def expand_keyframe(rec: dict, stamp: int, T_wc: np.ndarray, camera: CameraModel
     return Keyframe(stamp_ns=int(stamp), image=rec["image"].to(torch.float32) / 255.0,
                     T_wc=torch.from_numpy(np.array(T_wc)), depth=rec["depth"].to(torch.float32),
                     inv_depth_var=rec["inv_depth_var"].to(torch.float32), valid=rec["valid"], camera=camera,
-                    index=rec["index"])
+                    index=rec["index"], dynamic=rec["dynamic"] if bool(rec["dynamic"].any()) else None)
 
 
 def _nbytes(rec: dict) -> int:

@@ -69,11 +69,19 @@ def usable_depth_mask(kf: Keyframe, max_depth: float, max_rel_std: float) -> tor
 
     Masks invalid pixels, depth <= 0 or > ``max_depth`` (m, "excessive depth") and pixels whose
     relative depth standard deviation ``sigma_d / d = sqrt(inv_depth_var) * d`` exceeds
-    ``max_rel_std`` (high uncertainty; ``inv_depth_var`` is the variance of inverse depth, 1/m^2).
+    ``max_rel_std`` (high uncertainty; ``inv_depth_var`` is the variance of inverse depth, 1/m^2),
+    and the keyframe's dynamic pixels (:func:`static_mask`).
     """
     d = kf.depth.to(torch.float32)
     rel_std = torch.sqrt(kf.inv_depth_var.to(torch.float32).clamp_min(0)) * d
-    return kf.valid.to(torch.bool) & (d > 0) & (d <= max_depth) & (rel_std <= max_rel_std)
+    return kf.valid.to(torch.bool) & (d > 0) & (d <= max_depth) & (rel_std <= max_rel_std) & static_mask(kf)
+
+
+def static_mask(kf: Keyframe) -> torch.Tensor:
+    """(H, W) bool: pixels not marked dynamic by the eraser (all of them without a mask)."""
+    if kf.dynamic is None:
+        return torch.ones(kf.depth.shape[:2], dtype=torch.bool)
+    return ~kf.dynamic.to(torch.bool)
 
 
 def empty_mask(kf: Keyframe, max_depth: float) -> torch.Tensor:
@@ -88,10 +96,12 @@ def empty_mask(kf: Keyframe, max_depth: float) -> torch.Tensor:
     of the sky: variance 0). Pixels without depth because the
     estimate is *uncertain* (front-end depth dropped for high variance) are unknown, not empty:
     forcing them transparent would punch black holes into surfaces other keyframes see well.
+    Dynamic pixels are never empty.
     """
     d = kf.depth.to(torch.float32)
     std = torch.sqrt(kf.inv_depth_var.to(torch.float32).clamp_min(0))
-    return (d > max_depth) | ((~kf.valid.to(torch.bool)) & (d <= 0) & (std < 1.0 / max_depth))
+    # a dynamic pixel is neither: the object hides whatever lies behind it
+    return ((d > max_depth) | ((~kf.valid.to(torch.bool)) & (d <= 0) & (std < 1.0 / max_depth))) & static_mask(kf)
 
 
 def fill_depth(depth: torch.Tensor, known: torch.Tensor) -> torch.Tensor:

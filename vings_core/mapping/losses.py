@@ -171,11 +171,20 @@ def l1_map(pred: torch.Tensor, gt: torch.Tensor) -> torch.Tensor:
 
 def rgb_loss(pred: torch.Tensor, gt: torch.Tensor, lambda_ssim: float = 0.2,
              mask: torch.Tensor | None = None, target_stats: tuple | None = None,
-             l1: torch.Tensor | None = None) -> torch.Tensor:
+             l1: torch.Tensor | None = None, ssim_mask: torch.Tensor | None = None) -> torch.Tensor:
     """``(1 - l) L1 + l (1 - SSIM)`` averaged over pixels (or over ``mask``). ``target_stats``:
     cached :func:`ssim_target_stats` of ``gt``; ``l1``: the (differentiable) :func:`l1_map` if the
-    caller already has it."""
+    caller already has it. ``ssim_mask``: the SSIM term is averaged over these pixels instead (each
+    term over its own mask): pixels whose SSIM window reaches outside ``mask`` are left out, so
+    nothing outside ``mask`` (e.g. a moving object) enters the loss."""
     l1 = l1_map(pred, gt) if l1 is None else l1
+    if ssim_mask is not None and mask is not None:
+        m = mask.to(l1.dtype)
+        out = (1 - lambda_ssim) * (l1 * m).sum() / m.sum().clamp_min(1)
+        if lambda_ssim > 0:
+            ms = ssim_mask.to(l1.dtype)
+            out = out + lambda_ssim * ((1 - ssim_map_fast(pred, gt, target_stats)) * ms).sum() / ms.sum().clamp_min(1)
+        return out
     term = (1 - lambda_ssim) * l1
     if lambda_ssim > 0:
         term = term + lambda_ssim * (1 - ssim_map_fast(pred, gt, target_stats))

@@ -137,8 +137,10 @@ class Mapper:
         return len(changes)
 
     def add_keyframe(self, kf: Keyframe) -> dict:
-        """Insert a keyframe: tier update (every ``delta_k``), render it, delete conflicting Gaussians,
-        add Gaussians from its depth in low-accumulation regions. Returns counts."""
+        """Insert a keyframe: tier update (every ``delta_k``), with its dynamic mask (``kf.dynamic``)
+        erase what moving objects left (:meth:`set_dynamic_mask`), render it, delete conflicting
+        Gaussians, add Gaussians from its depth in low-accumulation regions (never in dynamic
+        pixels). Returns counts."""
         t0 = time.perf_counter()
         st, cfg = self.state, self.cfg
         check_keyframe(kf, st.poses, st.order[-1] if st.order else None, st.camera)
@@ -167,11 +169,66 @@ class Mapper:
         info = {"stamp_ns": s}
         if st.kf_count % cfg.delta_k == 0:
             info.update(self.update_tiers(st.poses[s]))
+        if kf.dynamic is not None:
+            info["erased_dynamic"] = self._erase_dynamic(kf)
         info.update(densify(st, kf))
         if len(st.gm) > cfg.max_active:
             info.update(self.update_tiers(st.poses[s]))
         self.timings["add_s"] += time.perf_counter() - t0
         return info
+
+    def set_dynamic_mask(self, stamp: int, mask) -> int:
+        """Keyframe ``stamp``'s dynamic mask (``(H, W)`` bool, True = moving object) arriving after
+        the keyframe was added: the keyframe (in the window or the history) keeps its dynamic
+        pixels out of training from now on, and the Gaussians inside the mask whose ID(g) keyframe
+        is among the ``erase_owner_keyframes`` latest ones are erased (what the object left before
+        it was caught, this keyframe's own included). Returns the number erased; a stamp the mapper
+        does not know is ignored (0)."""
+        st = self.state
+        s = int(stamp)
+        m = torch.as_tensor(np.asarray(mask)).to(torch.bool)
+        for i, kf in enumerate(st.window):
+            if kf.stamp_ns == s:
+                if tuple(m.shape) != tuple(kf.valid.shape):
+                    raise ValueError(f"dynamic mask of keyframe {s} has shape {tuple(m.shape)}, expected "
+                                     f"{tuple(kf.valid.shape)}")
+                st.window[i] = kf = replace(kf, dynamic=m)
+                self.trainer.forget(s)
+                return self._erase_dynamic(kf, include_own=True)
+        if s in st.history:
+            rec = st.history.get(s)
+            if rec is not None and tuple(rec["valid"].shape) == tuple(m.shape):
+                st.history.put(s, {**rec, "dynamic": m.clone()})
+        return 0
+
+    def _erase_dynamic(self, kf: Keyframe, include_own: bool = False) -> int:
+        """Remove the active Gaussians whose centre projects into ``kf.dynamic`` and whose ID(g)
+        keyframe is among the ``erase_owner_keyframes`` latest before ``kf`` (and ``kf`` itself with
+        ``include_own``)."""
+        st, n_own = self.state, int(self.cfg.erase_owner_keyframes)
+        if kf.dynamic is None or not bool(kf.dynamic.any()) or not len(st.gm) or n_own == 0:
+            return 0
+        s = int(kf.stamp_ns)
+        before = [o for o in st.order if o < s][-n_own:]
+        owners = torch.tensor(before + ([s] if include_own else []), dtype=st.gm.kf_id.dtype)
+        recent = torch.isin(st.gm.kf_id, owners)
+        if not bool(recent.any()):
+            return 0
+        T_cw = torch.from_numpy(np.linalg.inv(kf.T_wc.numpy()))
+        cam = kf.camera
+        p = st.gm.means.to(torch.float64) @ T_cw[:3, :3].T + T_cw[:3, 3]
+        z = p[:, 2]
+        u = torch.round(cam.fx * p[:, 0] / z.clamp_min(1e-9) + cam.cx).long()
+        v = torch.round(cam.fy * p[:, 1] / z.clamp_min(1e-9) + cam.cy).long()
+        inside = (z > 1e-6) & (u >= 0) & (u < cam.width) & (v >= 0) & (v < cam.height)
+        hit = torch.zeros_like(inside)
+        hit[inside] = kf.dynamic[v[inside], u[inside]]
+        kill = hit & recent
+        n = int(kill.sum())
+        if n:
+            st.gm = st.gm.remove(kill)
+            st.counters["erased_dynamic"] += n
+        return n
 
     def train(self, iters: Optional[int] = None) -> dict:
         """Run ``iters`` (default ``iters_per_keyframe``) training iterations on the local window.

@@ -22,7 +22,7 @@ from .storage import PassiveStore
 def new_counters() -> dict[str, int]:
     """The mapper's event counters (reported by ``Mapper.train`` and kept in checkpoints)."""
     return dict(added=0, deleted=0, pruned=0, nonfinite_grads=0, to_stable=0, to_unstable=0, to_passive=0,
-                from_passive=0, tier_updates=0)
+                from_passive=0, tier_updates=0, erased_dynamic=0)
 
 
 @dataclass

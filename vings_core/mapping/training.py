@@ -31,7 +31,7 @@ def coarse_keyframe(kf: Keyframe, factor: int = 2) -> Keyframe:
     """``kf`` at ``1/factor`` of its resolution (sizes cropped to a multiple of ``factor``): RGB
     averaged over each ``factor x factor`` block; depth averaged over blocks whose pixels are all
     valid (0 elsewhere, so depth edges are dropped, not blurred); inverse-depth variance the block's
-    largest; intrinsics scaled for OpenCV pixel centres (``c' = (c + 0.5) / f - 0.5``)."""
+    largest; a block is dynamic when any of its pixels is; intrinsics scaled for OpenCV pixel centres (``c' = (c + 0.5) / f - 0.5``)."""
     from ..types import CameraModel
     f = int(factor)
     cam = kf.camera
@@ -44,9 +44,10 @@ def coarse_keyframe(kf: Keyframe, factor: int = 2) -> Keyframe:
     valid = blocks(kf.valid & (kf.depth > 0)).all(2)
     depth = torch.where(valid, blocks(kf.depth).mean(2), torch.zeros((), dtype=kf.depth.dtype))
     c = CameraModel(W, H, cam.fx / f, cam.fy / f, (cam.cx + 0.5) / f - 0.5, (cam.cy + 0.5) / f - 0.5)
+    dyn = None if kf.dynamic is None else blocks(kf.dynamic).any(2)
     return Keyframe(stamp_ns=kf.stamp_ns, image=blocks(kf.image).mean(2).contiguous(), T_wc=kf.T_wc,
                     depth=depth.contiguous(), inv_depth_var=blocks(kf.inv_depth_var).amax(2).contiguous(),
-                    valid=valid, camera=c, index=kf.index)
+                    valid=valid, camera=c, index=kf.index, dynamic=dyn)
 
 
 class Trainer:
@@ -92,9 +93,14 @@ class Trainer:
         per resolution: full and coarse)."""
         history = self.st.history
         a = self._aux.get(kf.stamp_ns, {}).get(kf.camera.width) if kf.stamp_ns not in history else None
-        if a is None or a["T"] is not kf.depth:
+        if a is None or a["T"] is not kf.depth or a["D"] is not kf.dynamic:
             cfg = self.st.cfg
-            a = {"T": kf.depth, "usable": usable_depth_mask(kf, cfg.max_depth, cfg.max_depth_rel_std),
+            a = {"T": kf.depth, "D": kf.dynamic,
+                 "static": None if kf.dynamic is None else ~kf.dynamic,
+                 # SSIM windows (11 x 11) that stay clear of the dynamic pixels
+                 "ssim_static": None if kf.dynamic is None else
+                 -torch.nn.functional.max_pool2d(-(~kf.dynamic).float()[None, None], 11, 1, 5)[0, 0] > 0.5,
+                 "usable": usable_depth_mask(kf, cfg.max_depth, cfg.max_depth_rel_std),
                  "w_depth": depth_weight(kf.depth, kf.inv_depth_var, cfg.depth_rel_std0),
                  "masked": empty_mask(kf, cfg.max_depth),
                  "ssim_stats": ssim_target_stats(kf.image) if cfg.lambda_ssim > 0 else None}
@@ -108,13 +114,16 @@ class Trainer:
         the expected depth ``D_hat / alpha`` where ``alpha > 0.5`` instead of the accumulated depth
         ``D_hat``: the accumulated depth is short of the surface wherever alpha < 1, which for the
         map means "fill this pixel" but would pull a camera along its axis. ``it_terms`` receives
-        the terms' values and the per-pixel L1 map (``l1_map``)."""
+        the terms' values and the per-pixel L1 map (``l1_map``). The keyframe's dynamic pixels
+        (``kf.dynamic``) are left out of every term and have 0 in ``l1_map``."""
         cfg = self.st.cfg
         img = kf.image
         aux = self.keyframe_aux(kf)
         l1 = l1_map(out.color, img)
-        it_terms["l1_map"] = l1.detach()
-        l_rgb = rgb_loss(out.color, img, cfg.lambda_ssim, target_stats=aux["ssim_stats"], l1=l1)
+        static = aux["static"]      # None: no dynamic mask; else the pixels every loss may use
+        it_terms["l1_map"] = l1.detach() if static is None else torch.where(static, l1.detach(), 0.0)
+        l_rgb = rgb_loss(out.color, img, cfg.lambda_ssim, mask=static, target_stats=aux["ssim_stats"], l1=l1,
+                         ssim_mask=aux["ssim_static"])
         if expected_depth:
             a = out.alpha
             l_d = depth_loss(out.depth / a.clamp_min(1e-6), kf.depth, aux["w_depth"],
@@ -129,6 +138,8 @@ class Trainer:
             exp_d = out.depth / a.clamp_min(1e-6)
             n_d, ok = normals_from_depth(exp_d, kf.camera)
             ok = ok & (a.detach() > 0.5)
+            if static is not None:
+                ok = ok & static
             l_n = normal_loss(out.normal, n_d, torch.ones_like(a), ok)
             total = total + cfg.lambda_normal * l_n
         if with_acc and cfg.lambda_acc > 0:

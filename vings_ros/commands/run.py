@@ -25,6 +25,8 @@ def register(subparsers) -> None:
                    help="visual-only: do not fuse the IMU even when the recording has one (vio.enabled false)")
     p.add_argument("--no-loop", action="store_true",
                    help="no loop closure (loop.enabled false), e.g. for ablations")
+    p.add_argument("--no-eraser", action="store_true",
+                   help="no dynamic eraser (eraser.enabled false): no masks, e.g. for ablations")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.add_argument("--json", action="store_true", help="print metrics.json as one JSON line at the end")
     p.add_argument("--profile", action="store_true",
@@ -51,13 +53,16 @@ def run(args: argparse.Namespace) -> int:
     from vings_core.loop import LoopConfig
     loop_cfg = load_section(LoopConfig, "loop", args.params)
     loop_cfg.enabled = loop_cfg.enabled and not args.no_loop
+    from vings_core.eraser import EraserConfig
+    eraser_cfg = load_section(EraserConfig, "eraser", args.params)
+    eraser_cfg.enabled = eraser_cfg.enabled and not args.no_eraser
     cfg.sync = cfg.sync or args.sync
     cfg.gt_poses = cfg.gt_poses or args.gt_poses
     source = open_working_source(args.source, source_options(args), cfg.width, cfg.height)
     for w in source.warnings:
         print(f"vings run: warning: {w}", file=sys.stderr)
     runner = SlamRunner(source, args.out, params_file=args.params, run_cfg=cfg, progress=not args.no_progress,
-                        vio_cfg=vio_cfg, loop_cfg=loop_cfg)
+                        vio_cfg=vio_cfg, loop_cfg=loop_cfg, eraser_cfg=eraser_cfg)
     if args.profile:
         PROFILE.enable()
     metrics = runner.run()
@@ -67,7 +72,8 @@ def run(args: argparse.Namespace) -> int:
         print(format_table(rows))
     print(f"outputs in {runner.out.out_dir}: trajectory.tum keyframes.tum map.ply checkpoint.pt "
           f"metrics.json "
-          f"{'loops.json ' if runner.loop is not None else ''}renders/")
+          f"{'loops.json ' if runner.loop is not None else ''}renders/"
+          f"{' masks/' if runner.eraser is not None else ''}")
     if args.json:
         print(json.dumps(metrics))
     else:
