@@ -502,7 +502,7 @@ def test_vings_launch_no_loop_leaves_the_loop_closer_out(monkeypatch, tmp_path):
     from vings_ros import cli, launch
     from vings_ros.launch import default_nodes
 
-    assert default_nodes() == ("frontend_node", "mapper_node", "loop_closer_node")
+    assert default_nodes() == ("frontend_node", "mapper_node", "loop_closer_node", "eraser_node")
     seen = []
     real = launch.Launcher
 
@@ -516,14 +516,14 @@ def test_vings_launch_no_loop_leaves_the_loop_closer_out(monkeypatch, tmp_path):
     monkeypatch.setattr(launch, "Launcher", FakeLauncher)
     ck = tmp_path / "map.ckpt"
     assert cli.main(["launch", "--no-loop", "--checkpoint", str(ck)]) == 0
-    assert seen[-1].nodes == ("frontend_node", "mapper_node")
+    assert seen[-1].nodes == ("frontend_node", "mapper_node", "eraser_node")
     assert seen[-1].extra_params["loop.enabled"] == "false"
     assert "loop_closer_node.checkpoint_path" not in seen[-1].extra_params
     assert cli.main(["launch", "--checkpoint", str(ck)]) == 0
     assert seen[-1].nodes is None and "loop.enabled" not in seen[-1].extra_params
     assert seen[-1].extra_params["loop_closer_node.checkpoint_path"] == str(ck.resolve()) + ".loop"
     checked = real(seen[-1])        # the parameters pass the launcher's checks (nothing started)
-    assert checked.nodes == ["frontend_node", "mapper_node", "loop_closer_node"]
+    assert checked.nodes == ["frontend_node", "mapper_node", "loop_closer_node", "eraser_node"]
     assert checked.stop_timeout["loop_closer_node"] == 60.0
-    assert cli.main(["launch", "--no-loop", "--no-mapper"]) == 0
+    assert cli.main(["launch", "--no-loop", "--no-mapper", "--no-eraser"]) == 0
     assert seen[-1].nodes == ("frontend_node",)

@@ -80,8 +80,8 @@ def test_every_registry_node_has_a_console_script_and_a_launch_entry(monkeypatch
     assert "vings = vings_ros.cli:main" in scripts
     # the launch file starts what `vings launch` starts by default, in the same order
     from vings_ros.launch import default_nodes
-    assert _launch_file_nodes(monkeypatch) == list(reversed(default_nodes())) == ["loop_closer_node", "mapper_node",
-                                                                                "frontend_node"]
+    assert _launch_file_nodes(monkeypatch) == list(reversed(default_nodes())) == ["eraser_node", "loop_closer_node",
+                                                                                "mapper_node", "frontend_node"]
 
 
 def test_an_extra_registry_entry_is_listed_everywhere_without_editing_them(monkeypatch, tmp_path):
@@ -89,8 +89,9 @@ def test_an_extra_registry_entry_is_listed_everywhere_without_editing_them(monke
     from vings_ros.node_common import check_parameters, graph_layout, param_rules
     from vings_ros.params import default_sections
     monkeypatch.setattr(registry, "NODES", _with_extra())
-    assert default_nodes() == ("frontend_node", "extra_node", "mapper_node", "loop_closer_node")
-    assert _launch_file_nodes(monkeypatch) == ["loop_closer_node", "mapper_node", "extra_node", "frontend_node"]
+    assert default_nodes() == ("frontend_node", "extra_node", "mapper_node", "loop_closer_node", "eraser_node")
+    assert _launch_file_nodes(monkeypatch) == ["eraser_node", "loop_closer_node", "mapper_node", "extra_node",
+                                               "frontend_node"]
     assert "extra_node = stand_in_extra_node:main" in registry.console_scripts()
     # its settings section is part of the params layout, the defaults dump and the checks
     assert "extra_node" in graph_layout().sections and "extra_node" in graph_layout().nodes
@@ -102,7 +103,7 @@ def test_an_extra_registry_entry_is_listed_everywhere_without_editing_them(monke
     p = tmp_path / "p.yaml"
     p.write_text(yaml.safe_dump({"extra_node": {"ros__parameters": {"extra_node": {"resume": False}}}}))
     launcher = Launcher(LaunchOptions(params_file=str(p)))
-    assert launcher.nodes == ["frontend_node", "extra_node", "mapper_node", "loop_closer_node"]
+    assert launcher.nodes == ["frontend_node", "extra_node", "mapper_node", "loop_closer_node", "eraser_node"]
     assert launcher.stop_timeout["extra_node"] == 7.0
     assert node_command("extra_node", launcher.opt)[:3] == [sys.executable, "-m", "stand_in_extra_node"]
     # an on-request node is left out unless asked for
@@ -124,7 +125,7 @@ print("rc", L.Launcher(L.LaunchOptions()).run(), flush=True)
 def test_vings_launch_starts_and_stops_an_extra_registry_node_in_order(tmp_path):
     """A node added to the registry (between front end and mapper) is started by the launcher
     (consumers first) and stopped after the front end, before the mapper."""
-    names = ("frontend_node", "extra_node", "mapper_node", "loop_closer_node")
+    names = ("frontend_node", "extra_node", "mapper_node", "loop_closer_node", "eraser_node")
     from stand_in_nodes import write_stand_in_nodes
     logs = write_stand_in_nodes(tmp_path, names)
     env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(tmp_path), str(REPO)]))
@@ -138,6 +139,6 @@ def test_vings_launch_starts_and_stops_an_extra_registry_node_in_order(tmp_path)
     out, err = p.communicate(timeout=60)
     assert "rc 0" in out, err
     started = [err.find(f"started {name} ") for name in names]
-    assert min(started) >= 0 and started[3] < started[2] < started[1] < started[0], f"consumers start first:\n{err}"
+    assert min(started) >= 0 and started == sorted(started, reverse=True), f"consumers start first:\n{err}"
     stopped = [float(f.read_text().splitlines()[-1].split()[0]) for f in logs]
-    assert stopped[0] < stopped[1] < stopped[2] < stopped[3], "stopped in the registry order"
+    assert stopped == sorted(stopped), "stopped in the registry order"

@@ -22,7 +22,8 @@ class Cue(str, Enum):
 
     RERENDER = "rerender"   #: the paper's re-render loss (needs the map to cover the proposal)
     MOTION = "motion"       #: measured flow against the flow the camera's motion induces
-    BOTH = "both"           #: either of the two (default)
+    BOTH = "both"           #: the motion cue, or the re-render cue where the flow does not show the
+                            #: proposal static (default)
 
     def __str__(self) -> str:
         return self.value
@@ -58,7 +59,7 @@ class EraserConfig:
     percentile: float = 90.0                #: per-keyframe percentile of the loss over covered pixels
     gamma: float = 0.2                      #: a proposal is dynamic when more than this fraction of
                                             #: its covered pixels exceed the percentile ...
-    loss_threshold: float = 0.03            #: ... and its mean loss exceeds this
+    loss_threshold: float = 0.1             #: ... and its mean loss exceeds this
     sigma_clip: float = 10.0                #: Sigma_{d^-1} is taken relative to its median over the
                                             #: covered pixels and clipped to [1/clip, clip]
     min_alpha: float = 0.5                  #: a pixel is covered by the map when the render's
@@ -67,16 +68,23 @@ class EraserConfig:
                                             #: fraction of it is covered
     # ---- motion cue
     motion_px: float = 1.5                  #: residual flow (px) above which a pixel moves ...
-    motion_rel: float = 0.15                #: ... plus this fraction of the camera-induced flow
-    motion_fraction: float = 0.5            #: a proposal moves when this fraction of its reliable
+    motion_rel: float = 0.5                 #: ... along its epipolar line: plus this fraction of
+                                            #: the translational induced flow (the map's depth error)
+    motion_fraction: float = 0.4            #: a proposal moves when this fraction of its reliable
                                             #: pixels moves
     motion_min_reliable: float = 0.3        #: ... and at least this fraction of it is reliable
+    motion_refine_pose: bool = True         #: refine the keyframes' relative pose on the flow first
+    motion_max_fraction: float = 0.5        #: more reliable pixels moving than this: the relative
+                                            #: motion was not found, no motion cue for the keyframe
+    static_fraction: float = 0.1            #: (cue both) a proposal the re-render cue flags is kept
+                                            #: static when its flow is reliable and at most this
+                                            #: fraction of it moves (a map artefact, not an object)
     fb_check_px: float = 1.0                #: forward-backward flow disagreement above which a
                                             #: pixel's flow is unreliable
     motion_max_gap_s: float = 1.0           #: no motion cue against a previous keyframe older than this
     # ---- mask
     min_proposal_px: int = 30               #: smaller proposals are never dynamic
-    dilate_px: int = 2                      #: the mask is dilated by this many pixels
+    dilate_px: int = 1                      #: the mask is dilated by this many pixels
     max_masked_fraction: float = 0.6        #: a mask covering more than this is not trusted
                                             #: (map or tracking broke): the keyframe gets none
     # ---- timing (the graph and ``vings run``)
@@ -94,7 +102,7 @@ class EraserConfig:
         if not 0 < self.percentile < 100:
             raise ValueError(f"percentile must be in (0, 100), got {self.percentile}")
         for name in ("gamma", "min_alpha", "min_covered_fraction", "motion_fraction", "motion_min_reliable",
-                     "max_masked_fraction"):
+                     "max_masked_fraction", "motion_max_fraction", "static_fraction"):
             if not 0 <= getattr(self, name) <= 1:
                 raise ValueError(f"{name} must be in [0, 1], got {getattr(self, name)}")
         for name in ("felz_scale", "felz_sigma", "motion_px", "fb_check_px", "sigma_clip", "motion_max_gap_s"):

@@ -17,7 +17,7 @@ import numpy as np
 
 from ..types import Keyframe
 from .config import Cue, EraserConfig, LossTerms
-from .motion import moving_proposals, motion_residual
+from .motion import motion_residual, moving_proposals, static_proposals
 from .proposals import make_segmenter
 from .score import dynamic_proposals, rerender_loss
 
@@ -29,7 +29,7 @@ ABLATION_VARIANTS = {
     "ssim_l1": "re-render cue with L_SSIM * L_1",
     "ssim_l1_sigma": "re-render cue with L_SSIM * L_1 * Sigma (the paper's)",
     "motion": "motion cue alone",
-    "combined": "re-render (the paper's) or motion",
+    "combined": "motion, or re-render (the paper's) where the flow does not show the proposal static",
 }
 
 
@@ -105,6 +105,7 @@ class DynamicEraser:
         for tm in terms:
             dyn_rr.setdefault(tm, np.zeros(n, bool))
         dyn_mo = np.zeros(n, bool)
+        still = np.zeros(n, bool)       # proposals the flow shows static
         note = ""
         gray = cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)
         if want_mo and self._prev is not None:
@@ -112,16 +113,21 @@ class DynamicEraser:
             if 0 < (int(kf.stamp_ns) - stamp0) * 1e-9 <= cfg.motion_max_gap_s:
                 depth = None if render is None else np.where(covered, np.asarray(render["depth"]), 0.0)
                 res = motion_residual(gray, gray0, T_wc, T0, kf.camera, depth, cfg.motion_px, cfg.motion_rel,
-                                      cfg.fb_check_px)
-                dyn_mo = moving_proposals(labels, res, cfg.min_proposal_px, cfg.motion_fraction,
-                                          cfg.motion_min_reliable)
+                                      cfg.fb_check_px, cfg.motion_refine_pose)
+                if res.moving.sum() <= cfg.motion_max_fraction * max(1, res.reliable.sum()):
+                    dyn_mo = moving_proposals(labels, res, cfg.min_proposal_px, cfg.motion_fraction,
+                                              cfg.motion_min_reliable)
+                    still = static_proposals(labels, res, cfg.motion_min_reliable, cfg.static_fraction)
+                else:
+                    note = (f"{100 * res.moving.sum() / max(1, res.reliable.sum()):.0f} % of the flow disagrees "
+                            f"with the camera's motion (> motion_max_fraction): no motion cue")
         self._prev = (int(kf.stamp_ns), gray, T_wc)
 
         rr = dyn_rr[cfg.loss_terms]
-        pick = {Cue.RERENDER: rr, Cue.MOTION: dyn_mo, Cue.BOTH: rr | dyn_mo}[cfg.cue]
+        pick = {Cue.RERENDER: rr, Cue.MOTION: dyn_mo, Cue.BOTH: dyn_mo | (rr & ~still)}[cfg.cue]
         mask = self._finish(labels, pick)
         if mask.mean() > cfg.max_masked_fraction:
-            note = (f"mask covered {100 * mask.mean():.0f} % of the image (> max_masked_fraction "
+            note = note + ("; " if note else "") + (f"mask covered {100 * mask.mean():.0f} % of the image (> max_masked_fraction "
                     f"{100 * cfg.max_masked_fraction:.0f} %): map or tracking disagree with the whole view; no mask")
             log.warning("eraser: keyframe %d: %s", int(kf.stamp_ns), note)
             mask = np.zeros((H, W), bool)
@@ -129,7 +135,7 @@ class DynamicEraser:
         if cfg.ablation:
             variants = {tm.value: self._finish(labels, dyn_rr[tm]) for tm in LossTerms}
             variants["motion"] = self._finish(labels, dyn_mo)
-            variants["combined"] = self._finish(labels, dyn_rr[LossTerms.SSIM_L1_SIGMA] | dyn_mo)
+            variants["combined"] = self._finish(labels, dyn_mo | (dyn_rr[LossTerms.SSIM_L1_SIGMA] & ~still))
         return EraserResult(int(kf.stamp_ns), mask, n, int(rr.sum()), int(dyn_mo.sum()),
                             float(covered.mean()), 1e3 * (time.perf_counter() - t0), note, variants)
 

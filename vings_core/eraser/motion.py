@@ -6,7 +6,10 @@ own motion induces. Where the map covers the pixel, its rendered depth gives the
 the residual is the full 2-D difference; elsewhere (no depth that a moving object did not distort:
 the BA's own depth is pulled by the object) the residual is the distance of the measured match from
 its epipolar line, which needs no depth (motion along the epipolar line is invisible there). A
-pixel moves when its residual exceeds ``motion_px + motion_rel * |induced flow|``.
+pixel moves when its distance from the epipolar line exceeds ``motion_px``, or (with the map's
+depth) its distance along the line from where the depth puts it exceeds ``motion_px + motion_rel *
+|translational induced flow|`` (an error of the map's depth moves the prediction along the line,
+in proportion to the translational flow).
 
 Frames: ``T_wc`` camera-to-world (4x4); pixels of the working resolution; depth in metres (the
 map's units).
@@ -24,12 +27,14 @@ from ..types import CameraModel
 
 @dataclass
 class MotionResidual:
-    """Per pixel of the current keyframe (``(H, W)`` each): ``residual`` (px), ``threshold`` (px),
+    """Per pixel of the current keyframe (``(H, W)`` each): ``residual`` (px: the full 2-D
+    residual with depth, the epipolar distance without), ``threshold`` (px: the residual at which the
+    pixel counts as moving),
     ``reliable`` (forward-backward consistent flow), ``moving`` (reliable and residual above
     threshold), ``with_depth`` (the residual used the map's depth; else the epipolar distance)."""
 
     residual: np.ndarray
-    threshold: np.ndarray
+    ratio: np.ndarray
     reliable: np.ndarray
     moving: np.ndarray
     with_depth: np.ndarray
@@ -63,10 +68,12 @@ def sample_flow(flow: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
 
 def motion_residual(cur: np.ndarray, prev: np.ndarray, T_wc_cur: np.ndarray, T_wc_prev: np.ndarray,
                     camera: CameraModel, depth: Optional[np.ndarray], motion_px: float,
-                    motion_rel: float, fb_check_px: float) -> MotionResidual:
+                    motion_rel: float, fb_check_px: float, refine: bool = True) -> MotionResidual:
     """Residual flow of every pixel of keyframe ``cur`` against keyframe ``prev`` (images ``(H, W)``
     or ``(H, W, 3)``). ``depth``: the map's rendered z-depth at ``cur`` (m, 0 where the map does
-    not cover the pixel), or None."""
+    not cover the pixel), or None. ``refine``: the keyframes' relative pose is first refined on
+    the flow itself (:func:`refine_relative_pose`), so an error of the front end's poses is not
+    taken for motion."""
     H, W = camera.height, camera.width
     back = dense_flow(cur, prev)                       # cur -> prev
     fwd = dense_flow(prev, cur)                        # prev -> cur
@@ -79,8 +86,10 @@ def motion_residual(cur: np.ndarray, prev: np.ndarray, T_wc_cur: np.ndarray, T_w
     reliable = inside & np.isfinite(fb) & (fb < fb_check_px)
 
     T_pc = np.linalg.inv(np.asarray(T_wc_prev, np.float64)) @ np.asarray(T_wc_cur, np.float64)
-    R, t = T_pc[:3, :3], T_pc[:3, 3]
     K = np.array([[camera.fx, 0, camera.cx], [0, camera.fy, camera.cy], [0, 0, 1.0]])
+    if refine:
+        T_pc = refine_relative_pose(T_pc, K, u, v, xp, yp, reliable, depth, motion_px)
+    R, t = T_pc[:3, :3], T_pc[:3, 3]
     Ki = np.linalg.inv(K)
     pix = np.stack([u, v, np.ones_like(u)], -1).astype(np.float64)      # (H, W, 3)
     rays = pix @ Ki.T
@@ -94,40 +103,99 @@ def motion_residual(cur: np.ndarray, prev: np.ndarray, T_wc_cur: np.ndarray, T_w
     q_inf = rays @ R.T @ K.T
     with np.errstate(divide="ignore", invalid="ignore"):
         inf_xy = q_inf[..., :2] / q_inf[..., 2:3]
-    rot_flow = np.hypot(inf_xy[..., 0] - u, inf_xy[..., 1] - v)
     residual = epi
-    induced = rot_flow
+    ratio = epi / motion_px
     with_depth = np.zeros((H, W), bool)
     if depth is not None:
         d = np.asarray(depth, np.float64)
-        with_depth = np.isfinite(d) & (d > 0)
         X = rays * d[..., None]
         q = (X @ R.T + t) @ K.T
         with np.errstate(divide="ignore", invalid="ignore"):
             px = q[..., :2] / q[..., 2:3]
-        ok = with_depth & (q[..., 2] > 1e-6)
+        with_depth = np.isfinite(d) & (d > 0) & (q[..., 2] > 1e-6)
+        # a wrong depth moves the predicted point along the epipolar line only: the residual across
+        # the line is held to motion_px, the one along it gets motion_rel of the translational flow
         full = np.hypot(px[..., 0] - xp, px[..., 1] - yp)
-        residual = np.where(ok, full, residual)
-        induced = np.where(ok, np.hypot(px[..., 0] - u, px[..., 1] - v), induced)
-        with_depth = ok
+        along = np.sqrt(np.maximum(full ** 2 - epi ** 2, 0.0))
+        trans = np.hypot(px[..., 0] - inf_xy[..., 0], px[..., 1] - inf_xy[..., 1])
+        thr_along = motion_px + motion_rel * np.where(np.isfinite(trans), trans, 0.0)
+        residual = np.where(with_depth, full, residual)
+        ratio = np.where(with_depth, np.maximum(ratio, along / thr_along), ratio)
     residual = np.where(np.isfinite(residual), residual, 0.0)
-    threshold = motion_px + motion_rel * np.where(np.isfinite(induced), induced, 0.0)
-    moving = reliable & (residual > threshold)
-    return MotionResidual(residual.astype(np.float32), threshold.astype(np.float32), reliable, moving,
-                          with_depth)
+    ratio = np.where(np.isfinite(ratio), ratio, 0.0)
+    moving = reliable & (ratio > 1.0)
+    return MotionResidual(residual.astype(np.float32), ratio.astype(np.float32), reliable, moving, with_depth)
+
+
+def refine_relative_pose(T_pc: np.ndarray, K: np.ndarray, u: np.ndarray, v: np.ndarray, xp: np.ndarray,
+                         yp: np.ndarray, reliable: np.ndarray, depth: Optional[np.ndarray], px_thr: float,
+                         stride: int = 4, min_points: int = 60) -> np.ndarray:
+    """The relative pose ``T_pc`` (current camera -> previous) refined on the measured flow
+    (``(u, v)`` in the current keyframe at ``(xp, yp)`` in the previous one, where ``reliable``),
+    robustly, so that the static majority explains it: PnP RANSAC from the prior on the map's depth
+    where it covers enough pixels; else the essential matrix by RANSAC (the translation's length is
+    kept from the prior: only its direction is observable). The prior is returned when neither
+    finds a consistent majority. Pixels sampled every ``stride``."""
+    import cv2
+
+    sl = (slice(stride // 2, None, stride), slice(stride // 2, None, stride))
+    ok = reliable[sl]
+    cur = np.stack([u[sl][ok], v[sl][ok]], -1).astype(np.float64)
+    prv = np.stack([xp[sl][ok], yp[sl][ok]], -1).astype(np.float64)
+    if len(cur) < min_points:
+        return T_pc
+    if depth is not None:
+        d = np.asarray(depth, np.float64)[sl][ok]
+        has = np.isfinite(d) & (d > 0)
+        if has.sum() >= min_points:
+            rays = (cur[has] - K[:2, 2]) / np.array([K[0, 0], K[1, 1]])
+            X = np.concatenate([rays, np.ones((len(rays), 1))], 1) * d[has, None]
+            rvec0, _ = cv2.Rodrigues(T_pc[:3, :3])
+            tvec0 = T_pc[:3, 3].reshape(3, 1).copy()
+            good, rvec, tvec, inl = cv2.solvePnPRansac(X, prv[has], K, None, rvec0.copy(), tvec0, True, 100,
+                                                        float(px_thr), 0.999, flags=cv2.SOLVEPNP_ITERATIVE)
+            if good and inl is not None and len(inl) >= 0.5 * has.sum():
+                T = np.eye(4)
+                T[:3, :3] = cv2.Rodrigues(rvec)[0]
+                T[:3, 3] = tvec.ravel()
+                return T
+    E, mask = cv2.findEssentialMat(cur, prv, K, cv2.RANSAC, 0.999, float(px_thr))
+    if E is None or E.shape != (3, 3) or mask is None or mask.sum() < 0.5 * len(cur):
+        return T_pc
+    n, R, t, _ = cv2.recoverPose(E, cur, prv, K, mask=mask.copy())
+    if n < 0.5 * mask.sum():
+        return T_pc
+    scale = float(np.linalg.norm(T_pc[:3, 3]))
+    T = np.eye(4)
+    T[:3, :3] = R
+    T[:3, 3] = t.ravel() * (scale if scale > 0 else 1.0)
+    return T
+
+
+def motion_fractions(labels: np.ndarray, res: MotionResidual) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per proposal (``(n,)`` each): size (px), fraction of its pixels with reliable flow, fraction
+    of those that move."""
+    n = int(labels.max()) + 1
+    lab = labels.ravel()
+    size = np.bincount(lab, minlength=n).astype(np.float64)
+    rel = np.bincount(lab, weights=res.reliable.ravel().astype(np.float64), minlength=n)
+    mov = np.bincount(lab, weights=res.moving.ravel().astype(np.float64), minlength=n)
+    return size, rel / np.maximum(size, 1), mov / np.maximum(rel, 1)
 
 
 def moving_proposals(labels: np.ndarray, res: MotionResidual, min_px: int, fraction: float,
                      min_reliable: float) -> np.ndarray:
     """Which proposals move: ``(n,)`` bool. A proposal of at least ``min_px`` pixels moves when at
     least ``min_reliable`` of its pixels have reliable flow and more than ``fraction`` of those move."""
-    n = int(labels.max()) + 1
-    lab = labels.ravel()
-    size = np.bincount(lab, minlength=n)
-    rel = np.bincount(lab, weights=res.reliable.ravel().astype(np.float64), minlength=n)
-    mov = np.bincount(lab, weights=res.moving.ravel().astype(np.float64), minlength=n)
-    return (size >= min_px) & (rel >= min_reliable * np.maximum(size, 1)) & (rel > 0) & \
-        (mov > fraction * np.maximum(rel, 1))
+    size, rel, mov = motion_fractions(labels, res)
+    return (size >= min_px) & (rel >= min_reliable) & (rel > 0) & (mov > fraction)
+
+
+def static_proposals(labels: np.ndarray, res: MotionResidual, min_reliable: float, fraction: float) -> np.ndarray:
+    """Proposals the flow shows static: ``(n,)`` bool, at least ``min_reliable`` of their pixels
+    with reliable flow and at most ``fraction`` of those moving."""
+    _, rel, mov = motion_fractions(labels, res)
+    return (rel >= min_reliable) & (rel > 0) & (mov <= fraction)
 
 
 def moving_proposals_reference(labels: np.ndarray, res: MotionResidual, min_px: int, fraction: float,
