@@ -304,3 +304,33 @@ def test_vings_launch_no_eraser_leaves_the_eraser_out(monkeypatch):
     assert real(seen[-1]).nodes == ["frontend_node", "mapper_node", "loop_closer_node", "eraser_node"]
     assert cli.main(["launch", "--no-eraser", "--no-loop"]) == 0
     assert seen[-1].nodes == ("frontend_node", "mapper_node")
+
+
+def test_front_end_node_posts_the_masks_to_the_front_end():
+    """frontend_node's mask callback (no ROS context needed: a stand-in node): a mask of the
+    working size goes to ``Frontend.post_dynamic_mask``, an empty one is not posted, a mask of
+    another size or before the camera is known is counted, a malformed message too."""
+    import logging
+    import types
+
+    from msg_adapters.eraser import mask_to_msg
+    from vings_core.types import CameraModel
+    from vings_ros.frontend_node import FrontendNode
+
+    posted = []
+    node = types.SimpleNamespace(masks_received=0, masks_unused=0, bad_masks=0, frontend=None, undist=None,
+                                 get_logger=lambda: logging.getLogger("test"))
+    mask = np.zeros((48, 64), bool)
+    mask[10:20, 30:40] = True
+    FrontendNode._on_mask(node, mask_to_msg(mask, 5))
+    assert (node.masks_received, node.masks_unused, posted) == (1, 1, [])
+    node.frontend = types.SimpleNamespace(post_dynamic_mask=lambda s, m: posted.append((s, m)))
+    node.undist = types.SimpleNamespace(camera=CameraModel(64, 48, 40.0, 40.0, 31.5, 23.5))
+    FrontendNode._on_mask(node, mask_to_msg(mask, 7))
+    FrontendNode._on_mask(node, mask_to_msg(np.zeros((48, 64), bool), 8))
+    FrontendNode._on_mask(node, mask_to_msg(mask[:40], 9))
+    bad = mask_to_msg(mask, 10)
+    bad.encoding = "rgb8"
+    FrontendNode._on_mask(node, bad)
+    assert [s for s, _ in posted] == [7] and np.array_equal(posted[0][1], mask)
+    assert (node.masks_received, node.masks_unused, node.bad_masks) == (4, 1, 2)
