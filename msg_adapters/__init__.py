@@ -8,11 +8,13 @@ Modules: :mod:`.stamps` (ns <-> builtin_interfaces/Time), :mod:`.image` (Image, 
 :mod:`.camera_info`, :mod:`.imu`, :mod:`.pose` (Pose, PoseStamped, Odometry, Path),
 :mod:`.pointcloud` (PointCloud2 xyz + rgb), :mod:`.diagnostics`, :mod:`.markers`,
 :mod:`.keyframe` (the five-topic keyframe packet), :mod:`.exchange` (pose-exchange batches),
-:mod:`.loop` (render requests and replies, loop constraints), :mod:`.topics` (names, frames, QoS).
+:mod:`.loop` (render requests and replies, loop constraints), :mod:`.eraser` (the dynamic mask of a
+keyframe), :mod:`.topics` (names, frames, QoS).
 """
 from .camera_info import camera_info_to_camera, camera_to_camera_info
 from .diagnostics import (diagnostic_array, make_status, parse_diagnostic_array,
                           tracking_status)
+from .eraser import mask_to_msg, msg_to_mask
 from .image import (FrameDecoder, array_to_msg, float_image_to_msg, frame_to_msg, image_to_msg,
                     msg_to_depth,
                     msg_to_float_image, msg_to_frame, msg_to_image)
@@ -32,6 +34,7 @@ from .topics import CAMERA_FRAME, IMU_FRAME, WORLD_FRAME
 __all__ = [
     "camera_info_to_camera", "camera_to_camera_info", "diagnostic_array", "make_status",
     "parse_diagnostic_array", "tracking_status", "float_image_to_msg", "frame_to_msg",
+    "mask_to_msg", "msg_to_mask",
     "FrameDecoder", "array_to_msg", "image_to_msg", "msg_to_depth", "msg_to_float_image", "msg_to_frame", "msg_to_image",
     "imu_sample_to_msg", "imu_variances", "msg_to_imu_sample", "KeyframeAssembler",
     "KeyframeMessages", "keyframe_to_msgs", "msgs_to_keyframe", "LoopConstraint", "RenderReply",

@@ -32,6 +32,11 @@ KEYFRAME_VAR_TOPIC = "/vings/keyframe/inv_depth_var"
 KEYFRAME_POSE_TOPIC = "/vings/keyframe/pose"
 KEYFRAME_INFO_TOPIC = "/vings/keyframe/camera_info"
 
+# ---------------------------------------------------------------------------------- eraser out
+#: the dynamic eraser's mask of a keyframe (mono8, 255 = dynamic, stamped with the keyframe's stamp;
+#: wire format in msg_adapters/eraser.py): eraser_node -> mapper_node, frontend_node
+DYNAMIC_MASK_TOPIC = "/vings/keyframe/dynamic_mask"
+
 # ----------------------------------------------------------------------------------- mapper out
 RENDER_COLOR_TOPIC = "/vings/render/color"
 RENDER_DEPTH_TOPIC = "/vings/render/depth"

@@ -1,7 +1,9 @@
 """``frontend_node``: images (+ camera_info, IMU) in; odometry, path and keyframe packets out.
 
 It only translates messages (``msg_adapters``) and calls :class:`vings_core.frontend.Frontend`, the
-class ``vings run`` uses. Settings: params sections ``frontend_node`` (node_config.FrontendNodeConfig),
+class ``vings run`` uses. The dynamic eraser's masks (``/vings/keyframe/dynamic_mask``, from
+``eraser_node``) go to ``Frontend.post_dynamic_mask`` (applied before the next frame, never waited
+for). Settings: params sections ``frontend_node`` (node_config.FrontendNodeConfig),
 ``ros``, ``frontend`` and ``run``. Topics and parameters: docs/ros.md.
 """
 from __future__ import annotations
@@ -19,6 +21,7 @@ from std_msgs.msg import Header
 from msg_adapters import topics as T
 from msg_adapters.camera_info import camera_info_to_camera
 from msg_adapters.diagnostics import TRACKING_STATE_LEVEL
+from msg_adapters.eraser import msg_to_mask
 from msg_adapters.image import FrameDecoder
 from msg_adapters.imu import msg_to_imu_sample
 from msg_adapters.keyframe import PART_TOPICS, keyframe_to_msgs
@@ -77,6 +80,9 @@ class FrontendNode(StageNode):
         self._last_skip = ""
         self.bad_camera_infos = 0
         self.camera_changes = 0         # CameraInfo messages that differ from the camera in use
+        self.masks_received = 0         # the eraser's dynamic masks
+        self.masks_unused = 0           # came before the front end had a camera
+        self.bad_masks = 0
         # made now (a learned model loads its weights file): a wrong path is a start-up error, not
         # one that ends the node when the camera appears
         self._flow = make_flow_estimator(self.fcfg)
@@ -96,6 +102,7 @@ class FrontendNode(StageNode):
         self.create_subscription(CameraInfo, T.CAMERA_INFO_TOPIC, self._on_camera_info,
                                  sq(T.CAMERA_INFO_DEPTH))
         self.create_subscription(Imu, T.IMU_TOPIC, self._on_imu, sq(T.IMU_DEPTH))
+        self.create_subscription(Image, T.DYNAMIC_MASK_TOPIC, self._on_mask, sq(T.OUTPUT_DEPTH * 4))
         self.pub_odom = self.create_publisher(Odometry, T.ODOMETRY_TOPIC, sq(T.OUTPUT_DEPTH * 10))
         self.pub_path = self.create_publisher(Path, T.PATH_TOPIC, T.latched_qos(1))
         self.pub_kf = {p: self.create_publisher(type_, PART_TOPICS[p], sq(T.OUTPUT_DEPTH * 4))
@@ -152,6 +159,31 @@ class FrontendNode(StageNode):
             fe.add_imu(sample)
         elif self.imu_count == 1 and self.vcfg.enabled:
             self.get_logger().error(self._no_fusion_why())
+
+    def _on_mask(self, msg: Image) -> None:
+        """The eraser's mask of a keyframe -> the front end (thread-safe; applied before its next
+        frame to the keyframe if it is still in the window)."""
+        try:
+            stamp, mask = msg_to_mask(msg, T.DYNAMIC_MASK_TOPIC)
+        except InputError as e:
+            self.bad_masks += 1
+            if _report(self.bad_masks):
+                self.get_logger().warning(f"ignored a malformed dynamic mask ({self.bad_masks} so far): {e}")
+            return
+        self.masks_received += 1
+        fe, undist = self.frontend, self.undist
+        if fe is None or undist is None:
+            self.masks_unused += 1
+            return
+        cam = undist.camera
+        if mask.shape != (cam.height, cam.width):
+            self.bad_masks += 1
+            if _report(self.bad_masks):
+                self.get_logger().warning(f"ignored the dynamic mask of keyframe {stamp}: {mask.shape[1]}x"
+                                          f"{mask.shape[0]}, the working resolution is {cam.width}x{cam.height}")
+            return
+        if mask.any():
+            fe.post_dynamic_mask(stamp, mask)
 
     def _no_fusion_why(self) -> str:
         if not self.vcfg.enabled:
@@ -284,6 +316,10 @@ class FrontendNode(StageNode):
                   "camera_changes": self.camera_changes,
                   "imu_samples": self.imu_count, "bad_imu": self.bad_imu,
                   "late_poses": self.late_poses,
+                  "dynamic_masks_received": self.masks_received,
+                  "dynamic_masks_applied": self.frontend.stats.get("dynamic_masks", 0) if self.frontend else 0,
+                  "dynamic_masks_late": self.frontend.stats.get("dynamic_masks_late", 0) if self.frontend else 0,
+                  "bad_dynamic_masks": self.bad_masks,
                   **self._vi_values(st),
                   **self._exchange_values()}
         if st.get("vi_error"):

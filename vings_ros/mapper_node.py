@@ -9,25 +9,34 @@ changes, and on shutdown, atomically, and resumes from the checkpoint at start
 loop closer's render requests (``/vings/render/request`` -> ``/vings/render/reply/*``,
 msg_adapters/loop.py) in its worker thread, between keyframes and between training chunks (never
 while training), and after a keeper batch that first acknowledges a new loop correction it retrains
-the revisited region (:func:`vings_core.stages.retrain_after_loop`, section ``loop``). Settings:
-params sections ``mapper_node`` (node_config.MapperNodeConfig), ``ros``, ``mapping`` and ``loop``.
-Topics and parameters: docs/ros.md.
+the revisited region (:func:`vings_core.stages.retrain_after_loop`, section ``loop``). The same
+render requests come from ``eraser_node``, for the pose of a keyframe before its Gaussians are
+added: while a publisher of ``/vings/keyframe/dynamic_mask`` exists (and ``eraser.enabled``), each
+keyframe waits up to ``eraser.mask_timeout_s`` for its mask in the worker thread (which answers
+render requests meanwhile; the executor never waits), then is mapped with the mask
+(``Keyframe.dynamic``) or, when none came, without one (counted, WARN on /diagnostics); a mask that
+comes later goes through :meth:`~vings_core.mapping.Mapper.set_dynamic_mask`. Settings: params
+sections ``mapper_node`` (node_config.MapperNodeConfig), ``ros``, ``mapping``, ``loop`` and
+``eraser``. Topics and parameters: docs/ros.md.
 """
 from __future__ import annotations
 
 import os
 import threading
 import time
+from dataclasses import replace
 from pathlib import Path as FilePath
 from typing import Optional
 
 import numpy as np
+import torch
 from geometry_msgs.msg import PoseStamped
 from nav_msgs.msg import Path
 from sensor_msgs.msg import CameraInfo, Image, PointCloud2
 from visualization_msgs.msg import MarkerArray
 
 from msg_adapters import topics as T
+from msg_adapters.eraser import msg_to_mask
 from msg_adapters.image import float_image_to_msg, image_to_msg, rgb_float_to_uint8
 from msg_adapters.keyframe import PART_TOPICS, KeyframeAssembler
 from msg_adapters.loop import (RENDER_REQUEST_TOPIC, REPLY_TOPICS, RenderRequest, msg_to_render_request,
@@ -36,6 +45,7 @@ from msg_adapters.markers import keyframe_frustums_marker, marker_array, traject
 from msg_adapters.pointcloud import points_to_pointcloud2
 from msg_adapters.exchange import batch_to_path, exchange_topic
 from msg_adapters.pose import trajectory_to_path
+from vings_core.eraser import EraserConfig
 from vings_core.errors import InputError, VingsError
 from vings_core.exchange import IncrementBatch, PoseFollower
 from vings_core.exchange.config import KEEPER
@@ -54,6 +64,14 @@ from .node_config import MapperNodeConfig, QueuePolicy
 TRAIN_CHUNK = 5
 #: render requests waiting for the worker (older ones are dropped: their requester has moved on)
 RENDER_QUEUE = 8
+#: dynamic masks waiting for their keyframe (a mapper far behind the eraser); more are refused
+MASK_BUFFER = 256
+
+
+def _unpack(packed: tuple[tuple[int, int], np.ndarray]) -> np.ndarray:
+    """A buffered mask ``(shape, np.packbits(mask))`` -> ``(H, W)`` bool."""
+    shape, bits = packed
+    return np.unpackbits(bits, count=shape[0] * shape[1]).reshape(shape).astype(bool)
 
 
 def lower_priority(nice: int, threads: int) -> None:
@@ -84,6 +102,7 @@ class MapperNode(StageNode):
     def setup(self) -> None:
         self.mcfg: MapperConfig = self.config("mapping")
         self.lcfg: LoopConfig = self.config("loop")
+        self.ecfg: EraserConfig = self.config("eraser")
         lower_priority(self.settings.nice, self.settings.threads)
         self._exchange_setup()
         self.mapper = self._load_or_new()
@@ -101,8 +120,24 @@ class MapperNode(StageNode):
         self.retrains: list[dict] = []
         self.renders_answered = 0
         self.bad_render_requests = 0
-        # render requests of the loop closer: answered by the worker between its steps
+        # render requests of the loop closer and the eraser: answered by the worker between its steps
         self.render_requests = self.input_queue(QueuePolicy.BACKPRESSURE, RENDER_QUEUE)
+        # dynamic masks of the eraser: stamp -> (shape, bits packed), taken by the worker
+        self._masks: dict[int, tuple[tuple[int, int], np.ndarray]] = {}
+        self._mask_lock = threading.Lock()
+        self._wake = threading.Event()      # a mask or a render request arrived (the mask wait)
+        self.masks_received = 0
+        self.masks_late = 0                 # came after their keyframe was mapped: set_dynamic_mask
+        self.masks_unused = 0               # for a keyframe the mapper never mapped (dropped)
+        self.masks_refused = 0              # buffer full
+        self.bad_masks = 0
+        self.keyframes_with_mask = 0        # mapped with the mask that came within the timeout
+        self.keyframes_without_mask = 0     # waited eraser.mask_timeout_s, mapped without one
+        self.erased_late = 0                # Gaussians erased by late masks
+        self._mask_missing: Optional[int] = None   # the last keyframe that waited in vain (None: it came)
+        self.mask_wait_s_sum = 0.0
+        self.mask_wait_s_max = 0.0
+        self.mask_waits = 0
 
         sq = T.sensor_qos
         for part, type_ in (("image", Image), ("depth", Image), ("inv_depth_var", Image),
@@ -117,6 +152,7 @@ class MapperNode(StageNode):
         self.pub_markers = self.create_publisher(MarkerArray, T.MARKERS_TOPIC, T.latched_qos(1))
         self.pub_reply = {p: self.create_publisher(Image, topic, sq(T.OUTPUT_DEPTH)) for p, topic in REPLY_TOPICS.items()}
         self.create_subscription(PoseStamped, RENDER_REQUEST_TOPIC, self._on_render_request, sq(T.OUTPUT_DEPTH))
+        self.create_subscription(Image, T.DYNAMIC_MASK_TOPIC, self._on_mask, sq(T.OUTPUT_DEPTH * 4))
 
     def ready_message(self) -> str:
         return (f"mapper ready: {len(self.mapper.keyframe_poses())} keyframes, "
@@ -168,6 +204,23 @@ class MapperNode(StageNode):
                                           f"far): {e}")
             return
         self.render_requests.put(req)
+        self._wake.set()
+
+    def _on_mask(self, msg: Image) -> None:
+        try:
+            stamp, mask = msg_to_mask(msg, T.DYNAMIC_MASK_TOPIC)
+        except InputError as e:
+            self.bad_masks += 1
+            if worth_reporting(self.bad_masks):
+                self.get_logger().warning(f"ignored a malformed dynamic mask ({self.bad_masks} so far): {e}")
+            return
+        with self._mask_lock:
+            self.masks_received += 1
+            if len(self._masks) >= MASK_BUFFER and stamp not in self._masks:
+                self.masks_refused += 1
+                return
+            self._masks[stamp] = (mask.shape, np.packbits(mask, axis=None))
+        self._wake.set()
 
     # ----------------------------------------------------------------------------- the worker
 
@@ -176,6 +229,7 @@ class MapperNode(StageNode):
         kf: Optional[Keyframe] = None if msg is None else msg[1]
         self._exchange_receive()
         self._answer_renders()
+        self._apply_late_masks()
         if kf is None:
             self.maybe_checkpoint(idle=True)
             return
@@ -183,6 +237,7 @@ class MapperNode(StageNode):
             return  # resumed graph: the front end re-sent a keyframe the checkpoint already holds
         self._busy = True
         try:
+            kf = self._with_mask(kf)
             self._map(kf)
         except InputError as e:
             if int(kf.stamp_ns) in self.mapper.keyframe_poses():
@@ -199,6 +254,7 @@ class MapperNode(StageNode):
             # checkpoint, shutdown
             self._exchange_receive()
             self._answer_renders()
+            self._apply_late_masks()
             self.maybe_checkpoint(idle=False)
             return self._abort.is_set()
 
@@ -226,6 +282,87 @@ class MapperNode(StageNode):
             self.save_checkpoint(f"keyframe {self.keyframes_mapped}")
         else:
             self.maybe_checkpoint(idle=False)
+
+    # ------------------------------------------------------------------------- dynamic masks
+
+    def _eraser_running(self) -> bool:
+        """Whether to wait for masks: the eraser is on and someone publishes them (an eraser
+        that stopped, or a graph launched with ``--no-eraser``, costs no wait)."""
+        return bool(self.ecfg.enabled) and self.count_publishers(T.DYNAMIC_MASK_TOPIC) > 0
+
+    def _take_mask(self, stamp: int) -> Optional[np.ndarray]:
+        with self._mask_lock:
+            packed = self._masks.pop(stamp, None)
+        return None if packed is None else _unpack(packed)
+
+    def _with_mask(self, kf: Keyframe) -> Keyframe:
+        """Keyframe ``kf`` with its dynamic mask: wait (worker thread, at most
+        ``eraser.mask_timeout_s``, answering render requests meanwhile: the eraser asks for this
+        keyframe's render first) while an eraser runs; without one, a mask already here is used."""
+        stamp = int(kf.stamp_ns)
+        mask = self._take_mask(stamp)
+        if mask is None and self._eraser_running():
+            t0 = time.monotonic()
+            deadline = t0 + float(self.ecfg.mask_timeout_s)
+            while mask is None and not self._abort.is_set():
+                self._answer_renders()
+                self._apply_late_masks()
+                mask = self._take_mask(stamp)
+                left = deadline - time.monotonic()
+                if mask is not None or left <= 0:
+                    break
+                self._wake.wait(min(left, 0.05))
+                self._wake.clear()
+            waited = time.monotonic() - t0
+            self.mask_waits += 1
+            self.mask_wait_s_sum += waited
+            self.mask_wait_s_max = max(self.mask_wait_s_max, waited)
+            if mask is None:
+                self.keyframes_without_mask += 1
+                self._mask_missing = stamp
+                if worth_reporting(self.keyframes_without_mask):
+                    self.get_logger().warning(
+                        f"keyframe {stamp}: the eraser's mask did not come within eraser.mask_timeout_s = "
+                        f"{self.ecfg.mask_timeout_s:g} s; mapped without it ({self.keyframes_without_mask} "
+                        f"so far; a mask that comes later is applied then)")
+                return kf
+        if mask is None:
+            return kf
+        self._mask_missing = None
+        if mask.shape != (kf.camera.height, kf.camera.width):
+            self.bad_masks += 1
+            self.get_logger().warning(f"keyframe {stamp}: dynamic mask is {mask.shape[1]}x{mask.shape[0]} but the "
+                                      f"keyframe is {kf.camera.width}x{kf.camera.height}; mapped without it")
+            return kf
+        self.keyframes_with_mask += 1
+        if not mask.any():
+            return kf
+        return replace(kf, dynamic=torch.from_numpy(mask))
+
+    def _apply_late_masks(self) -> None:
+        """Masks of keyframes already mapped (they came after the timeout):
+        :meth:`Mapper.set_dynamic_mask`; masks of keyframes older than the newest mapped one that
+        the mapper does not hold (dropped) are discarded. Worker thread."""
+        st = self.mapper.state
+        if not self._masks or not st.order:
+            return
+        newest = st.order[-1]
+        with self._mask_lock:
+            done = {s: m for s, m in self._masks.items() if s in st.poses or s < newest}
+            for s in done:
+                del self._masks[s]
+        for s, packed in sorted(done.items()):
+            if s not in st.poses:
+                self.masks_unused += 1
+                continue
+            try:
+                self.erased_late += self.mapper.set_dynamic_mask(s, _unpack(packed))
+            except ValueError as e:     # a mask of another size
+                self.bad_masks += 1
+                self.get_logger().warning(f"ignored the late dynamic mask of keyframe {s}: {e}")
+                continue
+            self.masks_late += 1
+            self.mark_changed()
 
     def _answer_renders(self) -> None:
         """The loop closer's render requests (worker thread, between training chunks): the map from
@@ -288,7 +425,22 @@ class MapperNode(StageNode):
                   "keyframe_rate_hz": self.rate.hz, "incomplete_packets": self.assembler.pending,
                   "dropped_packets": self.assembler.dropped, "checkpoints": self.checkpoints,
                   "renders_answered": self.renders_answered, "bad_render_requests": self.bad_render_requests,
-                  "loop_retrains": len(self.retrains)}
+                  "loop_retrains": len(self.retrains),
+                  "eraser_wait": self.ecfg.enabled and self.count_publishers(T.DYNAMIC_MASK_TOPIC) > 0,
+                  "keyframes_with_mask": self.keyframes_with_mask,
+                  "keyframes_without_mask": self.keyframes_without_mask,
+                  "mask_wait_ms_mean": 1e3 * self.mask_wait_s_sum / self.mask_waits if self.mask_waits else 0.0,
+                  "mask_wait_ms_max": 1e3 * self.mask_wait_s_max,
+                  "masks_received": self.masks_received, "masks_late": self.masks_late,
+                  "masks_unused": self.masks_unused, "masks_refused": self.masks_refused,
+                  "bad_masks": self.bad_masks,
+                  "gaussians_erased_dynamic": int(self.mapper.state.counters.get("erased_dynamic", 0)),
+                  "gaussians_erased_late": self.erased_late}
+        if self._mask_missing is not None:
+            return NodeStatus(Level.WARN, f"{self.keyframes_without_mask} keyframe(s) mapped without a dynamic "
+                                          f"mask: the eraser's mask did not come within eraser.mask_timeout_s = "
+                                          f"{self.ecfg.mask_timeout_s:g} s (last: keyframe {self._mask_missing})",
+                              values)
         return NodeStatus(Level.OK, "mapping", values)
 
     # ---------------------------------------------------------------------------- checkpoints

@@ -247,11 +247,19 @@ class StageNode(Node):
 
     # -------------------------------------------------------------------------------- shutdown
 
-    def shutdown(self) -> None:
+    def shutdown(self, executor: Any = None) -> None:
         """Ordered stop: :meth:`drain`, close the input queues, stop the worker (its current step
         ends), :meth:`finish`, the final checkpoint, :meth:`close`. Everything after the worker
-        runs only once it has ended, so nothing races with the library."""
-        self.drain()
+        runs only once it has ended, so nothing races with the library. With ``executor`` (the
+        one spinning this node, stopped by now) a helper thread spins it while :meth:`drain`
+        runs, so the inputs are open in fact: the callbacks a draining worker relies on still run
+        (the mapper's queue waits for the eraser's masks and answers render requests)."""
+        spinner = _DrainSpinner(executor) if executor is not None else None
+        try:
+            self.drain()
+        finally:
+            if spinner is not None:
+                spinner.stop()
         for q in self._queues:
             q.close()
         if self.worker is not None and not self.worker.stop(timeout=self.WORKER_STOP_TIMEOUT_S):
@@ -280,6 +288,28 @@ class StageNode(Node):
         argv = list(sys.argv if args is None else args)
         end = argv.index("--ros-args") if "--ros-args" in argv else len(argv)
         return run_node(lambda: cls.from_args(argv[1:end]), argv, [cls.spec])
+
+
+class _DrainSpinner:
+    """Spins an executor on a helper thread until :meth:`stop` (during :meth:`StageNode.drain`);
+    ends quietly when the context goes away (rclpy shut down by a signal)."""
+
+    def __init__(self, executor: Any) -> None:
+        self._ex = executor
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="vings-drain-spin", daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            try:
+                self._ex.spin_once(timeout_sec=0.05)
+            except Exception:  # noqa: BLE001 - context shut down, executor gone: stop spinning
+                return
+
+    def stop(self) -> None:
+        self._stop.set()
+        self._thread.join(timeout=5.0)
 
 
 def _library_class(section: str) -> type:
@@ -352,7 +382,8 @@ def run_node(make_node: Callable[[], Any], args: Optional[list[str]] = None,
         worker_alive = False
         if node is not None:
             try:
-                node.shutdown()
+                # the executor goes on spinning while the node drains (its inputs are still open)
+                node.shutdown(executor=ex if ex is not None and rclpy.ok() else None)
             except Exception as e:  # noqa: BLE001
                 print(f"{node.get_name()}: error during shutdown: {e}", file=sys.stderr)
                 code = code or 1

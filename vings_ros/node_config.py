@@ -168,6 +168,33 @@ class LoopCloserNodeConfig(CheckpointSettings):
             raise ValueError(f"nice must be in 0..19, got {self.nice}")
 
 
+@dataclass
+class EraserNodeConfig:
+    """``eraser_node`` settings (params section ``eraser_node``); the eraser's own settings are the
+    library section ``eraser`` (``eraser.mask_timeout_s``: how long the mapper waits for a mask).
+
+    ``render_timeout_s``: how long the node waits for the mapper's render of a keyframe's pose;
+    without a reply in time (or without a mapper) the keyframe is processed with the motion cue
+    only. The mapper answers between training chunks but not during its retrain after a loop:
+    keep the timeout short, a mask that comes after ``eraser.mask_timeout_s`` is late for the
+    mapper anyway (it is applied to the mapped keyframe then). ``queue_memory_keyframes``:
+    received keyframes waiting for the eraser held in memory; later ones wait on disk in a private
+    temporary folder (none is dropped while the node runs; they are processed in order). ``nice``:
+    niceness the process adds to itself, so tracking wins the CPU (0 = off)."""
+
+    render_timeout_s: float = 1.0
+    queue_memory_keyframes: int = 8
+    nice: int = 10
+
+    def validate(self) -> None:
+        if not self.render_timeout_s > 0:
+            raise ValueError(f"render_timeout_s must be > 0, got {self.render_timeout_s}")
+        if self.queue_memory_keyframes < 1:
+            raise ValueError(f"queue_memory_keyframes must be >= 1, got {self.queue_memory_keyframes}")
+        if not 0 <= self.nice <= 19:
+            raise ValueError(f"nice must be in 0..19, got {self.nice}")
+
+
 #: ``ros.<key>`` names of node settings that live in a node's own section: a params file or ``-p``
 #: that uses one gets an error naming the section's key instead of "unknown parameter"
 MOVED_PARAMETERS = {

@@ -40,6 +40,7 @@ OUTPUT_TOPICS = [
     (T.EXCHANGE_TOPIC_PREFIX + "loop_closer", "nav_msgs/msg/Path", False),
     (T.MARKERS_TOPIC, "visualization_msgs/msg/MarkerArray", True),
     (LOOP_CONSTRAINTS_TOPIC, "nav_msgs/msg/Path", True),
+    (T.DYNAMIC_MASK_TOPIC, "sensor_msgs/msg/Image", False),
     (T.DIAGNOSTICS_TOPIC, "diagnostic_msgs/msg/DiagnosticArray", False),
 ]
 

@@ -7,8 +7,9 @@ standard library only: setup.py loads this file by path, before anything is inst
 
 Order: :data:`NODES` follows the data flow (producers first). ``vings launch`` stops the nodes in
 this order (the front end flushes its last keyframes before the mapper finishes its queue and saves,
-then the loop closer saves its database, the recorder closes its file last) and starts them in the reverse order (every consumer listens
-before its producer sends).
+then the loop closer saves its database; the eraser, which the mapper asks for masks while it
+works through its queue, stops after it; the recorder closes its file last) and starts them in the
+reverse order (every consumer listens before its producer sends).
 """
 from __future__ import annotations
 
@@ -51,9 +52,11 @@ NODES: tuple[NodeSpec, ...] = (
     NodeSpec("frontend_node", "vings_ros.frontend_node", "vings_ros.node_config:FrontendNodeConfig",
              reads=("frontend", "vio", "exchange")),
     NodeSpec("mapper_node", "vings_ros.mapper_node", "vings_ros.node_config:MapperNodeConfig",
-             reads=("mapping", "loop"), stop_timeout_s=180.0),
+             reads=("mapping", "loop", "eraser"), stop_timeout_s=180.0),
     NodeSpec("loop_closer_node", "vings_ros.loop_closer_node", "vings_ros.node_config:LoopCloserNodeConfig",
              reads=("loop",), stop_timeout_s=60.0, optional=True),
+    NodeSpec("eraser_node", "vings_ros.eraser_node", "vings_ros.node_config:EraserNodeConfig",
+             reads=("eraser",), stop_timeout_s=30.0, optional=True),
     NodeSpec("recorder_node", "vings_ros.recorder", launch=Launch.ON_REQUEST),
 )
 

@@ -1,4 +1,5 @@
-"""`vings launch`: start the VINGS node graph (front end + mapper + loop closer [+ recorder]) as processes."""
+"""`vings launch`: start the VINGS node graph (front end + mapper + loop closer + eraser [+ recorder]) as
+processes."""
 from __future__ import annotations
 
 import argparse
@@ -7,9 +8,10 @@ from pathlib import Path
 
 def register(subparsers) -> None:
     p = subparsers.add_parser(
-        "launch", help="start the node graph (frontend_node, mapper_node, loop_closer_node) as processes",
-        description="Start frontend_node, mapper_node and loop_closer_node (and with --record a "
-                    "recorder) as separate "
+        "launch", help="start the node graph (frontend_node, mapper_node, loop_closer_node, eraser_node) "
+                       "as processes",
+        description="Start frontend_node, mapper_node, loop_closer_node and eraser_node (and with "
+                    "--record a recorder) as separate "
                     "processes with the shipped Fast DDS shared-memory profile, report a node that "
                     "dies, and stop everything cleanly on Ctrl-C. Feed it with `vings replay` or a "
                     "live camera publishing /camera/image_raw + /camera/camera_info.")
@@ -26,6 +28,9 @@ def register(subparsers) -> None:
     p.add_argument("--no-mapper", action="store_true", help="leave the mapper out (front end alone)")
     p.add_argument("--no-loop", action="store_true",
                    help="leave the loop closer out (loop.enabled false: no loop closure, no retrain)")
+    p.add_argument("--no-eraser", action="store_true",
+                   help="leave the dynamic eraser out (eraser.enabled false: no masks, the mapper "
+                        "does not wait for them)")
     p.add_argument("--backpressure", action="store_true",
                    help="front end queue policy 'backpressure' (use with `vings replay --wait-for-graph`)")
     p.add_argument("--no-imu", action="store_true",
@@ -53,9 +58,12 @@ def run(args: argparse.Namespace) -> int:
         extra["vio.enabled"] = "false"
     if args.no_loop:
         extra["loop.enabled"] = "false"
+    if args.no_eraser:
+        extra["eraser.enabled"] = "false"
     if args.checkpoint and not args.no_loop:
         extra.setdefault("loop_closer_node.checkpoint_path", str(Path(args.checkpoint).resolve()) + ".loop")
-    left_out = {n for n, off in (("mapper_node", args.no_mapper), ("loop_closer_node", args.no_loop)) if off}
+    left_out = {n for n, off in (("mapper_node", args.no_mapper), ("loop_closer_node", args.no_loop),
+                                 ("eraser_node", args.no_eraser)) if off}
     nodes = tuple(n for n in default_nodes() if n not in left_out) if left_out else None
     opt = LaunchOptions(params_file=args.params or str(default_params_file()), record=args.record,
                         use_sim_time=args.use_sim_time, domain_id=args.domain_id,
