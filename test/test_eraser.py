@@ -209,3 +209,14 @@ def test_mask_png_roundtrip(tmp_path):
     assert np.array_equal(read_mask_png(p), m)
     with pytest.raises(ValueError, match="mono8"):
         mono8_to_mask(np.zeros((H, W, 3), np.uint8))
+
+
+def test_the_opencv_ssim_matches_the_mapper_reference_inside():
+    from vings_core.eraser.score import ssim_map_cv
+    from vings_core.mapping.losses import ssim_reference
+    a = _texture(9)
+    b = np.clip(a + 0.1 * _texture(10) - 0.05, 0, 1)
+    ref = ssim_reference(torch.from_numpy(a), torch.from_numpy(b)).numpy()
+    fast = ssim_map_cv(a, b)
+    # the same away from the borders (padding differs there)
+    assert np.abs(fast[6:-6, 6:-6] - ref[6:-6, 6:-6]).max() < 1e-4

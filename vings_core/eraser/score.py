@@ -17,9 +17,7 @@ from __future__ import annotations
 from typing import Optional
 
 import numpy as np
-import torch
 
-from ..mapping.losses import ssim_map_fast
 from .config import EraserConfig, LossTerms
 
 
@@ -34,18 +32,36 @@ def relative_sigma(inv_depth_var: np.ndarray, covered: np.ndarray, clip: float) 
     return np.clip(rel, 1.0 / clip, clip).astype(np.float32)
 
 
+def ssim_map_cv(a: np.ndarray, b: np.ndarray, size: int = 11, sigma: float = 1.5) -> np.ndarray:
+    """SSIM map ``(H, W)`` of two RGB images ``(H, W, 3)`` in [0, 1] (channel mean), with OpenCV's
+    separable Gaussian blur (the same window and constants as
+    :func:`~vings_core.mapping.losses.ssim_map`, which it is tested against; borders replicate
+    instead of zero-padding)."""
+    import cv2
+    C1, C2 = 0.01 ** 2, 0.03 ** 2
+    x = np.ascontiguousarray(a, dtype=np.float32)
+    y = np.ascontiguousarray(b, dtype=np.float32)
+
+    def blur(z):
+        return cv2.GaussianBlur(z, (size, size), sigma, borderType=cv2.BORDER_REFLECT)
+    mx, my = blur(x), blur(y)
+    sxx = blur(x * x) - mx * mx
+    syy = blur(y * y) - my * my
+    sxy = blur(x * y) - mx * my
+    s = ((2 * mx * my + C1) * (2 * sxy + C2)) / ((mx * mx + my * my + C1) * (sxx + syy + C2))
+    return s.mean(-1) if s.ndim == 3 else s
+
+
 def rerender_loss(render: np.ndarray, image: np.ndarray, inv_depth_var: Optional[np.ndarray],
                   covered: np.ndarray, terms: LossTerms, sigma_clip: float = 10.0) -> np.ndarray:
     """Per-pixel re-render loss ``(H, W)`` float32 of ``render`` against ``image`` (both
     ``(H, W, 3)`` RGB in [0, 1]); 0 outside ``covered``. ``terms``: which product (module docstring);
     ``inv_depth_var`` may be None only for terms without Sigma."""
-    r = torch.from_numpy(np.ascontiguousarray(render, dtype=np.float32))
-    g = torch.from_numpy(np.ascontiguousarray(image, dtype=np.float32))
-    loss = (r - g).abs().mean(-1)
+    r = np.ascontiguousarray(render, dtype=np.float32)
+    g = np.ascontiguousarray(image, dtype=np.float32)
+    out = np.abs(r - g).mean(-1)
     if terms in (LossTerms.SSIM_L1, LossTerms.SSIM_L1_SIGMA):
-        l_ssim = ((1.0 - ssim_map_fast(r, g)) * 0.5).clamp(0, 1)
-        loss = loss * l_ssim
-    out = loss.numpy().astype(np.float32)
+        out = out * np.clip((1.0 - ssim_map_cv(r, g)) * 0.5, 0.0, 1.0)
     if terms == LossTerms.SSIM_L1_SIGMA:
         if inv_depth_var is None:
             raise ValueError("the Sigma term needs the keyframe's inverse-depth variance")

@@ -17,8 +17,8 @@ from ..geometry import np_pose, np_so3_exp
 from ..types import CameraModel
 from .quads import QuadSet, box_quads, face_shade, make_quads
 from .textures import TextureAtlas, load_atlas
-from .trajectory import (ROOM_ROUTES, ROUTE_MIN_DURATION_S, Motion, RetraceMotion, SineSum, plan_drive,
-                         random_handheld, route_handheld)
+from .trajectory import (ROOM_ROUTES, ROUTE_MIN_DURATION_S, DriveMotion, Motion, RetraceMotion, SineSum,
+                         plan_drive, random_handheld, route_handheld)
 
 SCENES = ("room", "street")
 
@@ -41,14 +41,15 @@ def default_camera(width: int = 376, height: int = 240) -> CameraModel:
 
 @dataclass
 class MovingBox:
-    """A box with its own smooth motion: ``center(t)`` (3,) m and ``yaw(t)`` rad, given as
-    :class:`SineSum` per coordinate. ``local`` holds its quads in the box frame."""
+    """A box with its own smooth motion: ``center(t)`` (3,) m and ``yaw(t)`` rad, one callable of
+    ``t`` (s, scalar or array) per coordinate (:class:`SineSum`, or a :class:`RouteAhead`
+    coordinate for the street's lead car). ``local`` holds its quads in the box frame."""
 
     local: QuadSet
-    cx: SineSum
-    cy: SineSum
-    cz: SineSum
-    yaw: SineSum
+    cx: Callable
+    cy: Callable
+    cz: Callable
+    yaw: Callable
 
     def pose(self, t: float) -> tuple[np.ndarray, np.ndarray]:
         y = float(self.yaw(t))
@@ -97,6 +98,67 @@ class Scene:
     def T_wc(self, t) -> np.ndarray:
         """(N, 4, 4) camera poses ``T_wb @ T_bc`` at times ``t`` (s)."""
         return self.motion.T_wb(t) @ self.T_bc
+
+
+class RouteAhead:
+    """A place on the ego vehicle's own route ahead of it, for the street's lead car: at time ``t``
+    (s, the scene's clock) the point of the route the ego body reaches ``gap`` seconds later, and at
+    least ``min_ahead_m`` m of route ahead of where the ego is at ``t``.
+
+    ``gap`` (a :class:`SineSum`, s) is evaluated on the route's own clock (the
+    :class:`~vings_core.sim.trajectory.DriveMotion` under any re-timing:
+    :meth:`~vings_core.sim.trajectory.Motion.route_clock`), and so is the look-ahead: with a speed
+    factor or a slow start the lead car keeps the same distance (m) to the ego as without. It reads
+    ``scene.motion`` at every call (``scene`` is set once the :class:`Scene` exists), so it follows
+    whatever motion the scene ends up with. A loop's route goes round again; an open route goes on
+    along its planned continuation (the route is planned past the length it is cut at) and, past
+    that, straight on. :meth:`coord` gives the per-coordinate callables :class:`MovingBox` takes.
+    """
+
+    def __init__(self, gap: SineSum, min_ahead_m: float, height_m: float):
+        self.gap = gap
+        self.min_ahead_m = float(min_ahead_m)
+        self.height_m = float(height_m)
+        self.scene: Optional["Scene"] = None
+
+    def state(self, t) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``(x, y, heading)`` (m, m, rad; each shaped like ``t``) of the lane centre ahead."""
+        if self.scene is None:
+            raise RuntimeError("RouteAhead.scene is not set")
+        t = np.asarray(t, np.float64)
+        m, tb = self.scene.motion.route_clock(t.reshape(-1))
+        if not isinstance(m, DriveMotion):
+            raise TypeError(f"RouteAhead follows a DriveMotion, got {type(m).__name__}")
+        ta = tb + self.gap(tb)
+        if m.closed:                    # a loop: the route goes round again
+            T, L = m.duration, m.route_length
+            n_e, n_a = np.floor(tb / T), np.floor(ta / T)
+            s_ego = m.arc(tb - n_e * T)[0] + n_e * L
+            s_ahead = m.arc(ta - n_a * T)[0] + n_a * L
+        else:
+            s_ego = m.arc(tb)[0]
+            s_ahead = m.arc(np.minimum(ta, m.route_end_s))[0]
+        s = np.maximum(s_ahead, s_ego + self.min_ahead_m)
+        if m.closed:
+            s = np.mod(s, m.route_length)
+        pos, th, _ = m.geometry(s)
+        return pos[:, 0].reshape(t.shape), pos[:, 1].reshape(t.shape), th.reshape(t.shape)
+
+    def coord(self, i: int) -> "_RouteCoord":
+        """The callable ``t -> x`` (``i`` = 0), ``y`` (1), the box centre's height ``height_m`` (2) or
+        the heading (3)."""
+        return _RouteCoord(self, i)
+
+
+@dataclass
+class _RouteCoord:
+    ahead: RouteAhead
+    i: int
+
+    def __call__(self, t) -> np.ndarray:
+        if self.i == 2:
+            return np.full(np.shape(t), self.ahead.height_m)
+        return self.ahead.state(t)[(0, 1, None, 2)[self.i]]
 
 
 def make_scene(name: str, seed: int = 0, **kw) -> Scene:
@@ -346,13 +408,23 @@ def _make_street(seed: int, length_m: Optional[float], loop: bool, dynamic: bool
     S = p["block"]
     static, cells = _city(rng, atlas, seg_nodes, p)
     movers = _cars(rng, atlas, seg_nodes, p) if dynamic else []
+    lead = None
+    if dynamic:
+        lead, lead_info = _lead_car(rng, atlas, p, obj=len(movers))
+        lead_info["mover"] = len(movers)
+        movers.append(lead)
     info = {"block_m": S, "loop": loop, "route_length_m": motion.total_length,
             "blocks": len(cells), "quads": len(static), "moving_objects": len(movers),
             "v_turn_mps": v_turn, "v_cruise_mps": list(v_cruise)}
+    if lead is not None:
+        info["lead_car"] = lead_info
     if loop:
         info.update(loop_length_m=loop_length, retrace=retrace)
-    return Scene(name="street", seed=seed, static=static, movers=movers, atlas=atlas, motion=motion,
-                 T_bc=T_BC_DEFAULT.copy(), sky=True, info=info)
+    scene = Scene(name="street", seed=seed, static=static, movers=movers, atlas=atlas, motion=motion,
+                  T_bc=T_BC_DEFAULT.copy(), sky=True, info=info)
+    if lead is not None:
+        lead.cx.ahead.scene = scene
+    return scene
 
 
 def _city(rng, atlas: TextureAtlas, seg_nodes: np.ndarray, p: dict):
@@ -449,6 +521,35 @@ def _cars(rng, atlas: TextureAtlas, seg_nodes: np.ndarray, p: dict) -> list[Movi
             SineSum(size[2] / 2 + 0.1 * k, np.zeros(1), np.zeros(1), np.zeros(1)),
             SineSum(yaw, np.zeros(1), np.zeros(1), np.zeros(1))))
     return movers
+
+
+LEAD_SIZE = (4.6, 1.9, 1.7)     # m: the lead car (an SUV-sized box)
+LEAD_GAP_S = (0.6, 2.0)         # s: range of its time gap ahead of the ego vehicle
+LEAD_GAP_PERIOD_S = (14.0, 20.0)   # s: range of the period of the gap's oscillation
+LEAD_REAR_MIN_M = 3.0           # m: least route length between the ego body and the lead's rear
+
+
+def _lead_car(rng, atlas: TextureAtlas, p: dict, obj: int) -> tuple[MovingBox, dict]:
+    """A car driving ahead of the ego vehicle in its lane along its route (a :class:`RouteAhead`):
+    the time gap oscillates in :data:`LEAD_GAP_S` (``c + a sin(w t + phi)``, seeded period and
+    phase), and the lead's rear is always at least :data:`LEAD_REAR_MIN_M` of route ahead of the
+    ego body (so at low speed, in turns and from a standing start, it keeps that distance)."""
+    T = atlas.index
+    k = p["block"] / BLOCK
+    size = np.array(LEAD_SIZE) * max(k, 0.4)
+    lo, hi = LEAD_GAP_S
+    w = 2 * np.pi / rng.uniform(*LEAD_GAP_PERIOD_S)
+    gap = SineSum(0.5 * (lo + hi), np.array([0.5 * (hi - lo)]), np.array([w]),
+                  np.array([rng.uniform(0, 2 * np.pi)]))
+    min_ahead = float(size[0] / 2 + LEAD_REAR_MIN_M)
+    ahead = RouteAhead(gap, min_ahead, height_m=float(size[2] / 2 + 0.1 * k))
+    texs = [T("rocket"), T("camera"), T("coins"), T("motorcycle")]
+    local = box_quads((0, 0, 0), size, 0.0, int(rng.choice(texs)), 2.0 * k, rng,
+                      tint=rng.uniform(0.6, 1.1, 3), obj=obj)
+    box = MovingBox(local, ahead.coord(0), ahead.coord(1), ahead.coord(2), ahead.coord(3))
+    info = {"size_m": [round(float(v), 3) for v in size], "gap_s": [lo, hi],
+            "gap_period_s": round(float(2 * np.pi / w), 3), "min_ahead_m": round(min_ahead, 3)}
+    return box, info
 
 
 def _traversals(seg_nodes: np.ndarray, S: float) -> dict:

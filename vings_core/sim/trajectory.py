@@ -81,6 +81,12 @@ class Motion:
     def T_wb(self, t) -> np.ndarray:
         return self.sample(np.atleast_1d(np.asarray(t, np.float64))).T_wb()
 
+    def route_clock(self, t) -> tuple["Motion", np.ndarray]:
+        """The motion this one plays and its clock at times ``t`` (s): wrappers that only re-time
+        another motion (:class:`TimeScaledMotion`, :class:`SlowStartMotion`,
+        :class:`RetraceMotion`) pass the question on to it; any other motion is its own."""
+        return self, np.atleast_1d(np.asarray(t, np.float64))
+
 
 # ------------------------------------------------------------------------------ sinusoid sums
 
@@ -316,18 +322,24 @@ class DriveMotion(Motion):
     """Planar car motion on a route of straights and smooth 90-degree turns, with a speed profile of
     quintic ramps, small suspension bounce (height, pitch, roll) and yaw = heading.
 
-    Built by :func:`plan_drive`. ``height``: body height above the road (m).
+    Built by :func:`plan_drive`. ``height``: body height above the road (m). ``closed``: the
+    route ends where and as it starts (a loop). ``route_length`` (m) and ``route_end_s`` (s) are the
+    whole planned route, which goes on past ``total_length`` / ``duration`` when an open route is
+    cut (:func:`plan_drive`).
     """
 
     def __init__(self, pieces: list[_Piece], phases: list[_Phase], height: float,
-                 bounce: tuple[SineSum, SineSum, SineSum]):
+                 bounce: tuple[SineSum, SineSum, SineSum], closed: bool = False):
         self.pieces = pieces
         self.phases = phases
         self.height = float(height)
         self.zb, self.pitchb, self.rollb = bounce
+        self.closed = bool(closed)
         self.total_length = pieces[-1].s0 + pieces[-1].length
+        self.route_length = self.total_length
         last = phases[-1]
         self.duration = last.t0 + last.tau
+        self.route_end_s = self.duration
         self._ps0 = np.array([p.s0 for p in pieces])
         self._ph_t0 = np.array([p.t0 for p in phases])
 
@@ -418,7 +430,7 @@ def plan_drive(corners: np.ndarray, closed: bool, rng: np.random.Generator, *,
         legs, v_c = _start_inside_first_leg(legs, v_c, start_fraction, ramp_length)
     pieces, phases = _pieces_and_phases(legs, v_c, closed, turn_length, v_turn, ramp_length)
     duration = phases[-1].t0 + phases[-1].tau
-    motion = DriveMotion(pieces, phases, height, _bounce(rng, duration if closed else None))
+    motion = DriveMotion(pieces, phases, height, _bounce(rng, duration if closed else None), closed)
     if total_length is not None and total_length < motion.total_length:
         # cut an open route: keep phases up to the time the length is reached
         tt = _time_at_length(motion, total_length)
@@ -586,6 +598,9 @@ class TimeScaledMotion(Motion):
         k = self.scale
         return MotionSample(t, s.p, s.v * k, s.a * k * k, s.R, s.w * k)
 
+    def route_clock(self, t) -> tuple[Motion, np.ndarray]:
+        return self.base.route_clock(self.scale * np.atleast_1d(np.asarray(t, np.float64)))
+
 
 class SlowStartMotion(Motion):
     """``base`` started from rest: over the first ``ramp_s`` seconds its clock runs at the rate
@@ -635,6 +650,9 @@ class SlowStartMotion(Motion):
         return MotionSample(t, s.p, s.v * d1[:, None], s.a * (d1 ** 2)[:, None] + s.v * d2[:, None], s.R,
                             s.w * d1[:, None])
 
+    def route_clock(self, t) -> tuple[Motion, np.ndarray]:
+        return self.base.route_clock(self.warp(t)[0])
+
 
 class RetraceMotion(Motion):
     """A closed route driven on into a second pass: ``base`` (a closed :class:`DriveMotion`) played
@@ -663,6 +681,9 @@ class RetraceMotion(Motion):
         t = np.atleast_1d(np.asarray(t, np.float64))
         s = self.base.sample(np.mod(t, self.period))
         return MotionSample(t, s.p, s.v, s.a, s.R, s.w)
+
+    def route_clock(self, t) -> tuple[Motion, np.ndarray]:
+        return self.base.route_clock(np.mod(np.atleast_1d(np.asarray(t, np.float64)), self.period))
 
 
 def _time_at_length(m: DriveMotion, length: float) -> float:
