@@ -90,37 +90,47 @@ def motion_residual(cur: np.ndarray, prev: np.ndarray, T_wc_cur: np.ndarray, T_w
     if refine:
         T_pc = refine_relative_pose(T_pc, K, u, v, xp, yp, reliable, depth, motion_px)
     R, t = T_pc[:3, :3], T_pc[:3, 3]
-    Ki = np.linalg.inv(K)
-    pix = np.stack([u, v, np.ones_like(u)], -1).astype(np.float64)      # (H, W, 3)
-    rays = pix @ Ki.T
-    # epipolar distance of the measured match (no depth needed): l = F x, F = K^-T [t]x R K^-1
+    fx, fy, cx, cy = float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2])
+    rx = (u - cx) / fx                                  # normalised rays (z = 1), float32
+    ry = (v - cy) / fy
+    # epipolar line of each pixel in the previous keyframe: l = F x, F = K^-T [t]x R K^-1; its
+    # distance from the measured match needs no depth
     tx = np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]])
+    Ki = np.linalg.inv(K)
     F = Ki.T @ tx @ R @ Ki
-    lines = pix @ F.T
-    x2 = np.stack([xp, yp, np.ones_like(xp)], -1).astype(np.float64)
-    epi = np.abs((lines * x2).sum(-1)) / np.maximum(np.hypot(lines[..., 0], lines[..., 1]), 1e-12)
-    # rotation-only part: the flow the camera induces at infinite depth
-    q_inf = rays @ R.T @ K.T
+    F = (F / max(float(np.linalg.norm(F)), 1e-300)).astype(np.float32)     # the distance is scale-free
+    l0 = F[0, 0] * u + F[0, 1] * v + F[0, 2]
+    l1 = F[1, 0] * u + F[1, 1] * v + F[1, 2]
+    l2 = F[2, 0] * u + F[2, 1] * v + F[2, 2]
     with np.errstate(divide="ignore", invalid="ignore"):
-        inf_xy = q_inf[..., :2] / q_inf[..., 2:3]
+        epi = np.abs(l0 * xp + l1 * yp + l2) / np.maximum(np.hypot(l0, l1), 1e-12)
+    Rf = R.astype(np.float32)
+
+    def project(X, Y, Z):
+        with np.errstate(divide="ignore", invalid="ignore"):
+            return fx * X / Z + cx, fy * Y / Z + cy
+    # the rotation-only part: where the pixel would be at infinite depth
+    zi = Rf[2, 0] * rx + Rf[2, 1] * ry + Rf[2, 2]
+    inf_x, inf_y = project(Rf[0, 0] * rx + Rf[0, 1] * ry + Rf[0, 2], Rf[1, 0] * rx + Rf[1, 1] * ry + Rf[1, 2], zi)
     residual = epi
     ratio = epi / motion_px
     with_depth = np.zeros((H, W), bool)
     if depth is not None:
-        d = np.asarray(depth, np.float64)
-        X = rays * d[..., None]
-        q = (X @ R.T + t) @ K.T
-        with np.errstate(divide="ignore", invalid="ignore"):
-            px = q[..., :2] / q[..., 2:3]
-        with_depth = np.isfinite(d) & (d > 0) & (q[..., 2] > 1e-6)
+        d = np.asarray(depth, np.float32)
+        Z = d * zi + np.float32(t[2])
+        qx = d * (Rf[0, 0] * rx + Rf[0, 1] * ry + Rf[0, 2]) + np.float32(t[0])
+        qy = d * (Rf[1, 0] * rx + Rf[1, 1] * ry + Rf[1, 2]) + np.float32(t[1])
+        px_x, px_y = project(qx, qy, Z)
+        with_depth = np.isfinite(d) & (d > 0) & (Z > 1e-6)
         # a wrong depth moves the predicted point along the epipolar line only: the residual across
         # the line is held to motion_px, the one along it gets motion_rel of the translational flow
-        full = np.hypot(px[..., 0] - xp, px[..., 1] - yp)
+        full = np.hypot(px_x - xp, px_y - yp)
         along = np.sqrt(np.maximum(full ** 2 - epi ** 2, 0.0))
-        trans = np.hypot(px[..., 0] - inf_xy[..., 0], px[..., 1] - inf_xy[..., 1])
+        trans = np.hypot(px_x - inf_x, px_y - inf_y)
         thr_along = motion_px + motion_rel * np.where(np.isfinite(trans), trans, 0.0)
         residual = np.where(with_depth, full, residual)
-        ratio = np.where(with_depth, np.maximum(ratio, along / thr_along), ratio)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            ratio = np.where(with_depth, np.maximum(ratio, along / thr_along), ratio)
     residual = np.where(np.isfinite(residual), residual, 0.0)
     ratio = np.where(np.isfinite(ratio), ratio, 0.0)
     moving = reliable & (ratio > 1.0)

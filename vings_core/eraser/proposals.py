@@ -124,6 +124,7 @@ def make_segmenter(cfg: EraserConfig):
     """A callable ``image (H, W, 3) float [0, 1] -> labels (H, W) int32`` for ``cfg``."""
     if cfg.proposals == ProposalMethod.MODEL:
         return ModelSegmenter(cfg.model_path)
+    from skimage.segmentation import felzenszwalb, slic  # noqa: F401, PLC0415 - loaded now, not on the first keyframe (~2 s)
     return lambda image: segment_weight_free(image, cfg)
 
 
