@@ -220,3 +220,43 @@ def test_the_opencv_ssim_matches_the_mapper_reference_inside():
     fast = ssim_map_cv(a, b)
     # the same away from the borders (padding differs there)
     assert np.abs(fast[6:-6, 6:-6] - ref[6:-6, 6:-6]).max() < 1e-4
+
+
+def test_a_still_camera_sees_an_object_move_without_depth():
+    a = _texture(11)
+    b = a.copy()
+    patch = _texture(12, 24, 30)
+    a[40:64, 50:80] = patch
+    b[44:68, 54:84] = patch                  # the object moves 4 px down and right; the camera does not
+    res = motion_residual(b, a, np.eye(4), np.eye(4), CAM, None, 1.5, 0.5, 1.0)
+    obj = np.zeros((H, W), bool)
+    obj[48:64, 58:80] = True
+    assert res.moving[obj & res.reliable].mean() > 0.9
+    rest = np.ones((H, W), bool)
+    rest[30:78, 40:94] = False
+    assert res.moving[rest].mean() < 0.01
+
+
+def test_the_flow_does_not_veto_an_object_it_cannot_see_move():
+    """A car ahead holding its distance under forward motion: zero flow, along its epipolar line,
+    where the camera's translation hardly moves the pixels. The re-render cue's detection stands."""
+    from vings_core.eraser.motion import MotionResidual, static_proposals
+    labels = np.zeros((H, W), np.int32)
+    labels[40:60, 50:80] = 1
+    ok = np.ones((H, W), bool)
+    no_motion = MotionResidual(np.zeros((H, W), np.float32), np.zeros((H, W), np.float32), ok,
+                               np.zeros((H, W), bool), ok, np.zeros((H, W), bool))
+    assert not static_proposals(labels, no_motion, 0.3, 0.1).any()
+    seen = MotionResidual(no_motion.residual, no_motion.ratio, ok, no_motion.moving, ok, ok)
+    assert static_proposals(labels, seen, 0.3, 0.1).all()
+
+
+def test_float_label_maps_from_a_model_are_labels():
+    from vings_core.eraser.proposals import model_output_labels
+    y = np.zeros((1, 1, H, W), np.float32)
+    y[..., :, W // 2:] = 1.0
+    y[..., H // 2:, :] += 2.0
+    lab = model_output_labels(y, H, W)
+    assert len(np.unique(lab)) == 4
+    with pytest.raises(ConfigError, match="integer labels"):
+        model_output_labels(y + 0.5 * np.random.default_rng(0).random(y.shape).astype(np.float32), H, W)

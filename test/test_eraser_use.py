@@ -94,6 +94,13 @@ def test_set_dynamic_mask_erases_what_recent_keyframes_left_inside_it():
     assert not ((u >= 12) & (u < 36) & (v >= 8) & (v < 24)).any()
     assert m.state.window[-1].dynamic is not None
     assert m.set_dynamic_mask(99, _mask().numpy()) == 0          # unknown keyframe: ignored
+    # what lies behind the object's observed surface stays (the static map it hides)
+    m2 = _mapper(erase_owner_keyframes=2)
+    m2.add_keyframe(_kf(1_000, 0.0, seed=1, depth=4.0))
+    m2.add_keyframe(_kf(2_000, 0.0, seed=2, depth=1.0))
+    far = int((m2.gm.kf_id == 1_000).sum())
+    m2.set_dynamic_mask(2_000, _mask().numpy())
+    assert int((m2.gm.kf_id == 1_000).sum()) == far and int((m2.gm.kf_id == 2_000).sum()) > 0
     with pytest.raises(ValueError, match="shape"):
         m.set_dynamic_mask(3_000, np.zeros((3, 3), bool))
 

@@ -308,6 +308,7 @@ class SlamRunner:
         self.eraser_error: Optional[str] = None
         self.eraser_results: list[dict] = []     # per keyframe: EraserResult.summary()
         self._masks: dict[int, bytes] = {}       # stamp -> PNG (mono8), written at the end
+        self._eraser_epoch = (1, 0)              # (front-end segments, loop corrections acknowledged)
         self.out.prepare()      # after the configuration is known to be valid, before any work
         self._queue.discard_leftovers()     # of a killed earlier run (runs do not resume)
 
@@ -334,6 +335,12 @@ class SlamRunner:
         ``metrics.json`` ``eraser_error``); mapping goes on without masks."""
         if self.eraser is None or self.eraser_error is not None or self._abort:
             return kf
+        # the previous keyframe is no reference for the motion cue after a new map segment or a
+        # loop correction (another frame, or poses that jumped)
+        epoch = (self.frontend.stats["segments"] if self.frontend is not None else 0, self._loop_ack)
+        if epoch != self._eraser_epoch:
+            self.eraser.reset()
+            self._eraser_epoch = epoch
         try:
             with timed("eraser", "keyframe (total)"):
                 with timed("eraser", "render"):

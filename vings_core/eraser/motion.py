@@ -31,13 +31,17 @@ class MotionResidual:
     residual with depth, the epipolar distance without), ``threshold`` (px: the residual at which the
     pixel counts as moving),
     ``reliable`` (forward-backward consistent flow), ``moving`` (reliable and residual above
-    threshold), ``with_depth`` (the residual used the map's depth; else the epipolar distance)."""
+    threshold), ``with_depth`` (the residual used the map's depth; else the epipolar distance),
+    ``informative`` (the flow could show an object's motion there, whatever its direction: the map's
+    depth is known and the camera's translation moves the pixel by at least 3 ``motion_px``; a
+    proposal is shown static only by such pixels)."""
 
     residual: np.ndarray
     ratio: np.ndarray
     reliable: np.ndarray
     moving: np.ndarray
     with_depth: np.ndarray
+    informative: Optional[np.ndarray] = None
 
 
 def _gray8(image: np.ndarray) -> np.ndarray:
@@ -115,6 +119,8 @@ def motion_residual(cur: np.ndarray, prev: np.ndarray, T_wc_cur: np.ndarray, T_w
     residual = epi
     ratio = epi / motion_px
     with_depth = np.zeros((H, W), bool)
+    informative = np.zeros((H, W), bool)
+    trans_med = None
     if depth is not None:
         d = np.asarray(depth, np.float32)
         Z = d * zi + np.float32(t[2])
@@ -131,10 +137,21 @@ def motion_residual(cur: np.ndarray, prev: np.ndarray, T_wc_cur: np.ndarray, T_w
         residual = np.where(with_depth, full, residual)
         with np.errstate(divide="ignore", invalid="ignore"):
             ratio = np.where(with_depth, np.maximum(ratio, along / thr_along), ratio)
+        informative = with_depth & (trans >= 3.0 * motion_px)
+        if with_depth.any():
+            trans_med = float(np.median(trans[with_depth & np.isfinite(trans)])) if np.isfinite(trans[with_depth]).any() else None
+    # (almost) no translation: the epipolar line is undefined; where the map gives no depth the
+    # residual is then taken against the rotation alone (exact at zero translation)
+    if float(np.linalg.norm(t)) == 0.0 or (trans_med is not None and trans_med < motion_px):
+        rot = np.hypot(inf_x - xp, inf_y - yp)
+        allow = motion_px + (2.0 * trans_med if trans_med is not None else 0.0)
+        residual = np.where(with_depth, residual, rot)
+        ratio = np.where(with_depth, ratio, rot / allow)
     residual = np.where(np.isfinite(residual), residual, 0.0)
     ratio = np.where(np.isfinite(ratio), ratio, 0.0)
     moving = reliable & (ratio > 1.0)
-    return MotionResidual(residual.astype(np.float32), ratio.astype(np.float32), reliable, moving, with_depth)
+    return MotionResidual(residual.astype(np.float32), ratio.astype(np.float32), reliable, moving, with_depth,
+                          informative)
 
 
 def refine_relative_pose(T_pc: np.ndarray, K: np.ndarray, u: np.ndarray, v: np.ndarray, xp: np.ndarray,
@@ -169,6 +186,8 @@ def refine_relative_pose(T_pc: np.ndarray, K: np.ndarray, u: np.ndarray, v: np.n
                 T[:3, :3] = cv2.Rodrigues(rvec)[0]
                 T[:3, 3] = tvec.ravel()
                 return T
+    if float(np.median(np.linalg.norm(prv - cur, axis=1))) < px_thr:
+        return T_pc             # (almost) no motion: the essential matrix is degenerate
     E, mask = cv2.findEssentialMat(cur, prv, K, cv2.RANSAC, 0.999, float(px_thr))
     if E is None or E.shape != (3, 3) or mask is None or mask.sum() < 0.5 * len(cur):
         return T_pc
@@ -203,8 +222,15 @@ def moving_proposals(labels: np.ndarray, res: MotionResidual, min_px: int, fract
 
 def static_proposals(labels: np.ndarray, res: MotionResidual, min_reliable: float, fraction: float) -> np.ndarray:
     """Proposals the flow shows static: ``(n,)`` bool, at least ``min_reliable`` of their pixels
-    with reliable flow and at most ``fraction`` of those moving."""
-    _, rel, mov = motion_fractions(labels, res)
+    with reliable *and informative* flow (:class:`MotionResidual`: where any motion would show) and
+    at most ``fraction`` of those moving. An object moving along its epipolar line where the
+    camera's translation hardly moves the pixels (a car ahead, near the focus of expansion) is not
+    shown static."""
+    if res.informative is None:
+        return np.zeros(int(labels.max()) + 1, bool)
+    view = MotionResidual(res.residual, res.ratio, res.reliable & res.informative, res.moving & res.informative,
+                          res.with_depth, res.informative)
+    _, rel, mov = motion_fractions(labels, view)
     return (rel >= min_reliable) & (rel > 0) & (mov <= fraction)
 
 

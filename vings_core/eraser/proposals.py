@@ -103,10 +103,8 @@ def model_output_labels(y: np.ndarray, H: int, W: int, what: str = "model") -> n
     y = np.asarray(y)
     if y.ndim == 4 and y.shape[0] == 1:
         y = y[0]
-        if y.shape[0] == 1:                 # one channel: labels
-            y = y[0]
-    if y.ndim == 3 and y.shape[0] == 1 and y.shape[1:] == (H, W) and not np.issubdtype(y.dtype, np.floating):
-        y = y[0]
+    if y.ndim == 3 and y.shape[0] == 1 and y.shape[1:] == (H, W):
+        y = y[0]                            # one channel: labels (checked integer-valued below)
     if y.ndim == 3 and y.shape[1:] == (H, W):   # (K, H, W) logits
         best = y.argmax(0)
         bg = y.max(0) <= 0

@@ -25,8 +25,9 @@ def relative_sigma(inv_depth_var: np.ndarray, covered: np.ndarray, clip: float) 
     """``inv_depth_var`` over its median on the ``covered`` finite pixels, clipped to
     ``[1/clip, clip]``; unknown (non-finite) variance counts as ``clip`` (most uncertain)."""
     v = np.asarray(inv_depth_var, dtype=np.float64)
-    ok = np.isfinite(v) & (v > 0)
-    ref = v[ok & covered] if np.any(ok & covered) else v[ok]
+    ok = np.isfinite(v) & (v >= 0)
+    pos = ok & (v > 0)
+    ref = v[pos & covered] if np.any(pos & covered) else v[pos]
     med = float(np.median(ref)) if ref.size else 1.0
     rel = np.where(ok, v / max(med, 1e-30), clip)
     return np.clip(rel, 1.0 / clip, clip).astype(np.float32)
@@ -35,8 +36,8 @@ def relative_sigma(inv_depth_var: np.ndarray, covered: np.ndarray, clip: float) 
 def ssim_map_cv(a: np.ndarray, b: np.ndarray, size: int = 11, sigma: float = 1.5) -> np.ndarray:
     """SSIM map ``(H, W)`` of two RGB images ``(H, W, 3)`` in [0, 1] (channel mean), with OpenCV's
     separable Gaussian blur (the same window and constants as
-    :func:`~vings_core.mapping.losses.ssim_map`, which it is tested against; borders replicate
-    instead of zero-padding)."""
+    :func:`~vings_core.mapping.losses.ssim_map`, which it is tested against; borders are
+    reflected instead of zero-padded)."""
     import cv2
     C1, C2 = 0.01 ** 2, 0.03 ** 2
     x = np.ascontiguousarray(a, dtype=np.float32)

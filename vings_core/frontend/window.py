@@ -11,6 +11,7 @@ import time
 from dataclasses import dataclass
 from typing import Optional
 
+import cv2
 import numpy as np
 import torch
 
@@ -210,18 +211,24 @@ class KeyframeWindow:
         return ii, jj, tg, wt
 
     def set_dynamic(self, stamp: int, mask: np.ndarray) -> bool:
-        """Keyframe ``stamp``'s dynamic mask (``(H, W)`` bool): its grid points on the mask get
-        weight 0 in every later window BA and tracking step. False when the keyframe is no longer
-        in the window."""
+        """Keyframe ``stamp``'s dynamic mask (``(H, W)`` bool): its grid points whose block touches the
+        mask get weight 0 in every later window BA and tracking step, and so do observations of
+        other keyframes' points landing on it (grown by half a block). False when the keyframe is
+        no longer in the window."""
         for k in self.keyframes:
             if k.stamp == int(stamp):
                 m = np.asarray(mask, dtype=bool)
                 if m.shape != (self.ctx.H, self.ctx.W):
                     raise ValueError(f"dynamic mask of keyframe {stamp} has shape {m.shape}, expected "
                                      f"{(self.ctx.H, self.ctx.W)}")
-                uv = np.round(self.ctx.uv_np).astype(np.int64)
-                k.dynamic = m
-                k.static = (~m[uv[:, 1].clip(0, self.ctx.H - 1), uv[:, 0].clip(0, self.ctx.W - 1)]).astype(np.float64)
+                # a grid point's flow is its STRIDE x STRIDE block's: masked when any pixel of the
+                # block is; flow targets are checked against the mask grown by half a block
+                h, w, S = self.ctx.h, self.ctx.w, STRIDE
+                blk = np.zeros((h, w), bool)
+                hh, ww = min(h, self.ctx.H // S), min(w, self.ctx.W // S)
+                blk[:hh, :ww] = m[:hh * S, :ww * S].reshape(hh, S, ww, S).any((1, 3))
+                k.static = (~blk.reshape(-1)).astype(np.float64)
+                k.dynamic = cv2.dilate(m.astype(np.uint8), np.ones((S + 1, S + 1), np.uint8)).astype(bool)
                 return True
         return False
 

@@ -98,7 +98,8 @@ def densify(st: MapState, kf: Keyframe) -> dict:
     if len(st.gm):
         out = st.rasterize(st.gm, T_cw, cam)
         l1 = l1_map(out.color, kf.image)
-        st.loss_maps[kf.stamp_ns] = l1.to(torch.float32)
+        # the error map that drives sampling and scores leaves the dynamic pixels out
+        st.loss_maps[kf.stamp_ns] = torch.where(static_mask(kf), l1, 0.0).to(torch.float32)
         exp_d = out.depth / out.alpha.clamp_min(1e-10)
         dmask, rules = conflicts(st, out, l1, exp_d, kf, usable, T_cw)
         n_del = int(dmask.sum())

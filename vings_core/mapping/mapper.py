@@ -194,17 +194,23 @@ class Mapper:
                                      f"{tuple(kf.valid.shape)}")
                 st.window[i] = kf = replace(kf, dynamic=m)
                 self.trainer.forget(s)
+                if s in st.loss_maps:       # the error map that drives sampling and scores
+                    st.loss_maps[s] = torch.where(m, torch.zeros((), dtype=st.loss_maps[s].dtype), st.loss_maps[s])
                 return self._erase_dynamic(kf, include_own=True)
         if s in st.history:
             rec = st.history.get(s)
-            if rec is not None and tuple(rec["valid"].shape) == tuple(m.shape):
+            if rec is not None:
+                if tuple(rec["valid"].shape) != tuple(m.shape):
+                    raise ValueError(f"dynamic mask of keyframe {s} has shape {tuple(m.shape)}, expected "
+                                     f"{tuple(rec['valid'].shape)}")
                 st.history.put(s, {**rec, "dynamic": m.clone()})
         return 0
 
     def _erase_dynamic(self, kf: Keyframe, include_own: bool = False) -> int:
-        """Remove the active Gaussians whose centre projects into ``kf.dynamic`` and whose ID(g)
-        keyframe is among the ``erase_owner_keyframes`` latest before ``kf`` (and ``kf`` itself with
-        ``include_own``)."""
+        """Remove the active Gaussians whose centre projects into ``kf.dynamic``, no deeper than
+        the keyframe's depth there (``delete_depth_rel`` margin; any depth where it has none), and
+        whose ID(g) keyframe is among the ``erase_owner_keyframes`` latest before ``kf`` (and ``kf``
+        itself with ``include_own``)."""
         st, n_own = self.state, int(self.cfg.erase_owner_keyframes)
         if kf.dynamic is None or not bool(kf.dynamic.any()) or not len(st.gm) or n_own == 0:
             return 0
@@ -223,7 +229,12 @@ class Mapper:
         inside = (z > 1e-6) & (u >= 0) & (u < cam.width) & (v >= 0) & (v < cam.height)
         hit = torch.zeros_like(inside)
         hit[inside] = kf.dynamic[v[inside], u[inside]]
-        kill = hit & recent
+        # only what lies at or in front of the object's observed surface: the static map behind it
+        # (hidden now) stays; where the keyframe has no depth, what projects into the mask goes
+        D = torch.zeros_like(z)
+        D[inside] = kf.depth[v[inside], u[inside]].to(D.dtype)
+        front = (D <= 0) | (z < D * (1 + self.cfg.delete_depth_rel))
+        kill = hit & recent & front
         n = int(kill.sum())
         if n:
             st.gm = st.gm.remove(kill)
