@@ -59,7 +59,7 @@ class EraserConfig:
     percentile: float = 90.0                #: per-keyframe percentile of the loss over covered pixels
     gamma: float = 0.2                      #: a proposal is dynamic when more than this fraction of
                                             #: its covered pixels exceed the percentile ...
-    loss_threshold: float = 0.1             #: ... and its mean loss exceeds this
+    loss_threshold: float = 0.2             #: ... and its mean loss exceeds this
     sigma_clip: float = 10.0                #: Sigma_{d^-1} is taken relative to its median over the
                                             #: covered pixels and clipped to [1/clip, clip]
     min_alpha: float = 0.5                  #: a pixel is covered by the map when the render's
