@@ -177,6 +177,26 @@ def _swept_count(runner, path: Path, kw: dict, seed: int) -> int | None:
     return int(inside.sum())
 
 
+def _safe(fn, *args) -> dict:
+    """A figure's function; its failure is recorded, the runs already done are kept."""
+    try:
+        return fn(*args)
+    except Exception as e:  # noqa: BLE001 - one figure failing must not lose the runs
+        log(f"{fn.__name__} failed: {type(e).__name__}: {e}")
+        return {"error": f"{fn.__name__}: {type(e).__name__}: {e}"}
+
+
+def _swept(runner, path: Path, kw: dict, seed: int) -> dict:
+    return {"swept_gaussians": _swept_count(runner, path, kw, seed)}
+
+
+def _save(name: str, r: dict) -> None:
+    """Each run's figures as they come (``WORK/results/<name>.json``)."""
+    d = WORK / "results"
+    d.mkdir(parents=True, exist_ok=True)
+    (d / f"{name}.json").write_text(json.dumps(r, indent=1, default=str))
+
+
 def _pooled(scores: dict) -> dict:
     from vings_core.eval.masks import aggregate
     return {k: {kk: (round(v, 4) if isinstance(v, float) else v) for kk, v in aggregate(vs).items()}
@@ -200,19 +220,23 @@ def exp_dynamic(a) -> dict:
             on_m, on_r, scores = _run(path, eraser=True, truth=True)
             on = {"ate_se3_m": on_m["ate_se3_m"], "masked_fraction": on_m["masked_fraction"],
                   "eraser_ms_mean": on_m["eraser_ms_mean"], "masks": _pooled(scores),
-                  "swept_gaussians": _swept_count(on_r, path, kw, seed), **_static_psnr(on_r, path)}
+                  **_safe(_swept, on_r, path, kw, seed), **_safe(_static_psnr, on_r, path)}
             for k, v in scores.items():
                 pooled.setdefault(k, []).extend(v)
+            _save(path.name, {"eraser": on, "scores": {k: [vars(x) for x in v] for k, v in scores.items()}})
+            del on_r
             off_m, off_r, _ = _run(path, eraser=False, truth=False)
-            off = {"ate_se3_m": off_m["ate_se3_m"], "swept_gaussians": _swept_count(off_r, path, kw, seed),
-                   **_static_psnr(off_r, path)}
+            off = {"ate_se3_m": off_m["ate_se3_m"], **_safe(_swept, off_r, path, kw, seed),
+                   **_safe(_static_psnr, off_r, path)}
+            del off_r
             r = {"eraser": on, "no_eraser": off, "frames_objects_over_15pct": _big_share(path)}
-            if on["swept_gaussians"] is not None and off["swept_gaussians"]:
+            _save(path.name, {**r, "scores": {k: [vars(x) for x in v] for k, v in scores.items()}})
+            if on.get("swept_gaussians") is not None and off.get("swept_gaussians"):
                 r["swept_reduction"] = round(1 - on["swept_gaussians"] / off["swept_gaussians"], 4)
             if on["ate_se3_m"] and off["ate_se3_m"]:
                 r["ate_change"] = round(on["ate_se3_m"] / off["ate_se3_m"] - 1, 4)
             for k in ("psnr_static_keyframes_db", "psnr_static_heldout_db"):
-                if on[k] is not None and off[k] is not None:
+                if on.get(k) is not None and off.get(k) is not None:
                     r[k.replace("psnr_", "psnr_gain_")] = round(on[k] - off[k], 3)
             runs[path.name] = r
             log(json.dumps({path.name: r}))
@@ -244,8 +268,8 @@ def main(argv=None) -> int:
     ap.add_argument("--exp", default="dynamic,static")
     ap.add_argument("--seeds", type=lambda s: [int(x) for x in s.split(",")], default=[0, 1, 2])
     ap.add_argument("--scenes", default="room,street", help="dynamic: room,street")
-    ap.add_argument("--room-frames", type=int, default=200)
-    ap.add_argument("--street-length", type=float, default=200.0, help="street route length (m), at 10 fps")
+    ap.add_argument("--room-frames", type=int, default=150)
+    ap.add_argument("--street-length", type=float, default=150.0, help="street route length (m), at 10 fps")
     a = ap.parse_args(argv)
     table = {"dynamic": lambda: exp_dynamic(a), "static": lambda: exp_static(a)}
     return run_selected(ap, a, table, log)
