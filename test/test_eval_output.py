@@ -20,7 +20,8 @@ CONTRACT_KEYS = ["frames", "frames_tracked", "keyframes", "wall_s", "fps", "ate_
                  "num_gaussians", "peak_rss_mb", "keyframes_light", "queue_peak_keyframes", "queue_spilled", "frames_unposed", "frames_unposed_reason", "segments", "ate_segments_m",
                  "vi_state", "vi_initialised_at_s", "scale_observable", "acc_bias", "gyro_bias", "td_s",
                  "td_estimates", "imu_only_frames", "vi_error",
-                 "loops_accepted", "loop_candidates_rejected", "loop_detect_ms_mean"]
+                 "loops_accepted", "loop_candidates_rejected", "loop_detect_ms_mean",
+                 "masked_fraction", "eraser_ms_mean", "eraser_error"]
 
 
 def test_metric_keys_are_the_contract():
