@@ -88,7 +88,7 @@ class EraserConfig:
     max_masked_fraction: float = 0.6        #: a mask covering more than this is not trusted
                                             #: (map or tracking broke): the keyframe gets none
     # ---- timing (the graph and ``vings run``)
-    mask_timeout_s: float = 0.5             #: the mapper waits at most this long for a keyframe's mask
+    mask_timeout_s: float = 1.0             #: the mapper waits at most this long for a keyframe's mask
     ablation: bool = False                  #: also compute every cue and loss variant (benchmarks)
 
     def validate(self) -> None:
