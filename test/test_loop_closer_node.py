@@ -105,8 +105,9 @@ def wait_for(cond, timeout=60.0):
 
 def feed(node, kf):
     from msg_adapters.keyframe import keyframe_to_msgs
+    add = node.keyframes_in.add if hasattr(node, "keyframes_in") else node._on_part   # the mapper: _on_part
     for part, m in keyframe_to_msgs(kf).as_dict().items():
-        node._on_part(part, m)
+        add(part, m)
 """
 
 LOOP_SCRIPT = SCENE + HARNESS + """
@@ -170,7 +171,7 @@ b = path_to_batch(listener.batches[0], "loop_closer")
 res["batch"] = {"seq": b.seq, "stamps": sorted(b.increments), "acks": b.acks}
 res["older_than"] = fake.older_than
 res["cameras"] = fake.cameras
-res["renders"] = dict(node.renders)
+res["renders"] = dict(node.render_client.counts)
 res["diag"] = {k: v for k, v in node.diagnostics().values.items() if k in ("loops_accepted", "keyframes", "metric")}
 assert wait_for(lambda: node._reported_records == 3, 20)       # written after the loop's messages
 res["loops_json"] = json.load(open(out + "/loops.json"))
@@ -189,7 +190,7 @@ feed(node, keyframe(5, TRUE[5], EMIT[5]))
 assert wait_for(lambda: node.keyframes_done == 6, 60), (node.keyframes_done, node.error)
 res["after_timeout"] = [r for r in node.closer.records if r["newer"] == 6 * 10**9]
 res["error"] = repr(node.error) if node.error else None
-res["timeouts"] = node.renders["timeouts"]
+res["timeouts"] = node.render_client.counts["timeouts"]
 halts[0]()
 node.shutdown()           # final checkpoint (the front end never answered: the correction is undone)
 state = node.closer.state_dict()
@@ -251,7 +252,7 @@ assert wait_for(lambda: closer.count_subscribers(RENDER_REQUEST_TOPIC) > 0 and
 t0 = time.time()
 res["before"] = closer.render_map(pose(0, 0), cam, None)
 res["before_s"] = time.time() - t0
-res["before_empty"] = closer.renders["empty"]
+res["before_empty"] = closer.render_client.counts["empty"]
 feed(mapper, keyframe(0, TRUE[0], EMIT[0], cam))
 assert wait_for(lambda: mapper.keyframes_mapped == 1, 120), mapper.error
 T_req = pose(0.05, 0.02)
@@ -498,11 +499,11 @@ def test_mapper_node_answers_render_requests_and_retrains_after_a_loop():
     assert res["pose_moved"] == pytest.approx(0.01, abs=1e-9)
 
 
-def test_vings_launch_no_loop_leaves_the_loop_closer_out(monkeypatch, tmp_path):
-    from vings_ros import cli, launch
-    from vings_ros.launch import default_nodes
+def fake_launcher(monkeypatch) -> tuple[list, type]:
+    """``vings launch`` without starting anything: ``(the Launcher options each call made, the real
+    Launcher)``."""
+    from vings_ros import launch
 
-    assert default_nodes() == ("frontend_node", "mapper_node", "loop_closer_node", "eraser_node")
     seen = []
     real = launch.Launcher
 
@@ -514,6 +515,15 @@ def test_vings_launch_no_loop_leaves_the_loop_closer_out(monkeypatch, tmp_path):
             return 0
 
     monkeypatch.setattr(launch, "Launcher", FakeLauncher)
+    return seen, real
+
+
+def test_vings_launch_no_loop_leaves_the_loop_closer_out(monkeypatch, tmp_path):
+    from vings_ros import cli
+    from vings_ros.launch import default_nodes
+
+    assert default_nodes() == ("frontend_node", "mapper_node", "loop_closer_node", "eraser_node")
+    seen, real = fake_launcher(monkeypatch)
     ck = tmp_path / "map.ckpt"
     assert cli.main(["launch", "--no-loop", "--checkpoint", str(ck)]) == 0
     assert seen[-1].nodes == ("frontend_node", "mapper_node", "eraser_node")

@@ -24,20 +24,15 @@ docs/ros.md.
 """
 from __future__ import annotations
 
-import os
 import threading
 import time
 from typing import Optional
 
-from geometry_msgs.msg import PoseStamped
 from nav_msgs.msg import Path
-from sensor_msgs.msg import CameraInfo, Image
+from sensor_msgs.msg import Image
 
 from msg_adapters import topics as T
 from msg_adapters.eraser import mask_to_msg
-from msg_adapters.keyframe import PART_TOPICS, KeyframeAssembler
-from msg_adapters.loop import (RENDER_REQUEST_TOPIC, REPLY_TOPICS, RenderReply, RenderReplyAssembler,
-                               RenderRequest, render_request_to_msg)
 from msg_adapters.stamps import header_ns
 from vings_core.eraser import DynamicEraser, EraserConfig, EraserResult
 from vings_core.errors import InputError
@@ -45,11 +40,12 @@ from vings_core.keyframe_queue import KeyframeQueue
 from vings_core.types import Keyframe
 
 from . import registry
-from .node_base import Level, NodeStatus, StageNode
-from .node_common import RateMeter, worth_reporting
+from .node_base import KeyframeInbox, Level, NodeStatus, StageNode
+from .node_common import RateMeter, lower_priority, worth_reporting
 from .node_config import EraserNodeConfig
+from .render_client import RenderClient
 
-#: what happened to the last keyframe's render request -> is it a warning
+#: what happened to the last keyframe's render request (render_client.OUTCOMES) -> is it a warning
 RENDER_OUTCOMES = {"answered": False, "empty": False, "timeout": True, "no_mapper": True, "mismatched": True}
 
 
@@ -62,11 +58,7 @@ class EraserNode(StageNode):
 
     def setup(self) -> None:
         self.ecfg: EraserConfig = self.config("eraser")
-        if self.settings.nice > 0:      # tracking (and its keyframes) first
-            try:
-                os.nice(self.settings.nice)
-            except OSError:
-                pass
+        lower_priority(self.settings.nice, 0)      # tracking (and its keyframes) first
         self._abort = threading.Event()         # shutdown: a render wait ends at once
         self.eraser: Optional[DynamicEraser] = DynamicEraser(self.ecfg) if self.ecfg.enabled else None
         self.keyframes_done = 0
@@ -75,10 +67,7 @@ class EraserNode(StageNode):
         self.masks_distrusted = 0               # covered more than eraser.max_masked_fraction: sent empty
         self.without_render = 0                 # processed with render=None (motion cue only)
         self.renders_after_mapped = 0           # the mapper had mapped the keyframe before it answered
-        self.bad_parts = 0
-        self.bad_replies = 0
         self.bad_keyframes = 0
-        self.renders = dict(requests=0, answered=0, empty=0, timeouts=0, no_mapper=0, mismatched=0)
         self.last_render = ""                   # outcome of the last keyframe's request (RENDER_OUTCOMES)
         self.time_ms_sum = 0.0
         self.time_ms_max = 0.0
@@ -88,31 +77,19 @@ class EraserNode(StageNode):
         self.rate = RateMeter(30.0)
         self._arrived: dict[int, float] = {}    # stamp -> monotonic time its packet completed
         self._mapped_upto = -1                  # newest keyframe stamp on /vings/keyframes/refined
-        # one render request in flight at a time (the worker waits for it)
-        self._reply_lock = threading.Lock()
-        self._reply_event = threading.Event()
-        self._waiting: Optional[int] = None
-        self._reply: Optional[RenderReply] = None
-        self._last_id = 0
-        self.assembler = KeyframeAssembler(max_pending=16)
-        self.replies = RenderReplyAssembler(max_pending=16)
         # keyframes are not dropped: FIFO, bounded in memory, the rest in a private folder on disk
         self.queue = KeyframeQueue(self.settings.queue_memory_keyframes, None)
-
-        sq = T.sensor_qos
-        if not self.ecfg.enabled:
-            # no mask publisher either: the mapper waits only while one exists
+        on = self.ecfg.enabled      # off: no topics (no mask publisher: the mapper waits only while one exists)
+        # one render request in flight at a time (the worker waits for it); ids follow the wall clock
+        # (> 0, increasing): far from the loop closer's, which count up by one from its start time
+        self.render_client = RenderClient(self, self._abort, ids="clock", connect=on,
+                                          consequence="its mask uses the motion cue only")
+        self.keyframes_in = KeyframeInbox(self, self._on_keyframe, connect=on)
+        if not on:
             self.get_logger().warning("the dynamic eraser is off (eraser.enabled false): keyframes are ignored")
             return
-        self.pub_mask = self.create_publisher(Image, T.DYNAMIC_MASK_TOPIC, sq(T.OUTPUT_DEPTH * 4))
-        self.pub_request = self.create_publisher(PoseStamped, RENDER_REQUEST_TOPIC, sq(T.OUTPUT_DEPTH))
-        for part, topic in REPLY_TOPICS.items():
-            self.create_subscription(Image, topic, lambda m, p=part: self._on_reply(p, m), sq(T.OUTPUT_DEPTH))
+        self.pub_mask = self.create_publisher(Image, T.DYNAMIC_MASK_TOPIC, T.sensor_qos(T.OUTPUT_DEPTH * 4))
         self.create_subscription(Path, T.REFINED_KEYFRAMES_TOPIC, self._on_refined, T.latched_qos(1))
-        for part, type_ in (("image", Image), ("depth", Image), ("inv_depth_var", Image),
-                            ("pose", PoseStamped), ("camera_info", CameraInfo)):
-            self.create_subscription(type_, PART_TOPICS[part], lambda m, p=part: self._on_part(p, m),
-                                     sq(T.OUTPUT_DEPTH * 4))
 
     def ready_message(self) -> str:
         if self.eraser is None:
@@ -123,32 +100,9 @@ class EraserNode(StageNode):
 
     # ------------------------------------------------------------------------------ callbacks
 
-    def _on_part(self, part: str, msg) -> None:
-        try:
-            kf = self.assembler.add(part, msg)
-        except InputError as e:
-            self.bad_parts += 1
-            if worth_reporting(self.bad_parts):
-                self.get_logger().warning(f"dropped a malformed keyframe part ({self.bad_parts} so far): {e}")
-            return
-        if kf is not None:
-            self._arrived[int(kf.stamp_ns)] = time.monotonic()
-            self.queue.put("kf", kf)
-
-    def _on_reply(self, part: str, msg: Image) -> None:
-        try:
-            reply = self.replies.add(part, msg)
-        except InputError as e:
-            self.bad_replies += 1
-            if worth_reporting(self.bad_replies):
-                self.get_logger().warning(f"ignored a malformed render reply ({self.bad_replies} so far): {e}")
-            return
-        if reply is None:
-            return
-        with self._reply_lock:
-            if reply.request_id == self._waiting:       # the loop closer's replies are not ours
-                self._reply = reply
-                self._reply_event.set()
+    def _on_keyframe(self, kf: Keyframe) -> None:
+        self._arrived[int(kf.stamp_ns)] = time.monotonic()
+        self.queue.put("kf", kf)
 
     def _on_refined(self, msg: Path) -> None:
         """The mapper's keyframes (``/vings/keyframes/refined``): which ones it has mapped."""
@@ -167,56 +121,19 @@ class EraserNode(StageNode):
         subscribes, no reply comes, the map is empty or the reply does not fit the camera. Worker
         thread (the replies arrive on the executor's)."""
         stamp = int(kf.stamp_ns)
-        if self._abort.is_set():
+        res = self.render_client.request(kf.T_wc.detach().cpu().numpy(), kf.camera, stamp,
+                                         self.settings.render_timeout_s, about=f"keyframe {stamp}")
+        if res.outcome == "aborted":
             return None
-        if self.count_subscribers(RENDER_REQUEST_TOPIC) == 0:
-            self.renders["no_mapper"] += 1
-            self.last_render = "no_mapper"
-            return None
-        # ids follow the wall clock (> 0, increasing): far from the loop closer's, which count up by
-        # one from its start time
-        rid = self._last_id = max(self._last_id + 1, time.time_ns())
-        with self._reply_lock:
-            self._waiting, self._reply = rid, None
-            self._reply_event.clear()
-        req = RenderRequest(rid, kf.T_wc.detach().cpu().numpy(), older_than=stamp, camera=kf.camera)
-        self.pub_request.publish(render_request_to_msg(req, self.ros.world_frame))
-        self.renders["requests"] += 1
-        timeout = self.settings.render_timeout_s
-        deadline = time.monotonic() + timeout
-        while not self._reply_event.wait(0.02):
-            if self._abort.is_set() or time.monotonic() >= deadline:
-                break
-        with self._reply_lock:
-            reply, self._waiting, self._reply = self._reply, None, None
-        if reply is None:
-            self.renders["timeouts"] += 1
-            self.last_render = "timeout"
-            if worth_reporting(self.renders["timeouts"]):
-                self.get_logger().warning(f"keyframe {stamp}: no render from the mapper within {timeout:g} s "
-                                          f"({self.renders['timeouts']} so far); its mask uses the motion cue only")
-            return None
-        self.renders["answered"] += 1
-        if stamp <= self._mapped_upto:
+        self.last_render = res.outcome
+        if res.reply is not None and stamp <= self._mapped_upto:
             # the mapper did not wait for this mask (timeout): the render still leaves the
             # keyframe's own Gaussians out (older_than), and the mapper applies the mask late
             self.renders_after_mapped += 1
             if worth_reporting(self.renders_after_mapped):
                 self.get_logger().warning(f"keyframe {stamp} was already mapped when its render came "
                                           f"({self.renders_after_mapped} so far): its mask is late for the mapper")
-        if reply.empty:
-            self.renders["empty"] += 1
-            self.last_render = "empty"
-            return None
-        if reply.color.shape[:2] != (kf.camera.height, kf.camera.width):
-            self.renders["mismatched"] += 1
-            self.last_render = "mismatched"
-            if worth_reporting(self.renders["mismatched"]):
-                self.get_logger().warning(f"render reply {rid} is {reply.color.shape[1]}x{reply.color.shape[0]} "
-                                          f"but keyframe {stamp} is {kf.camera.width}x{kf.camera.height}")
-            return None
-        self.last_render = "answered"
-        return reply.as_dict()
+        return res.render
 
     # ----------------------------------------------------------------------------- the worker
 
@@ -252,7 +169,8 @@ class EraserNode(StageNode):
 
     def diagnostics(self) -> NodeStatus:
         n = self.masks_published
-        values = {"keyframes": self.assembler.completed, "keyframes_processed": self.keyframes_done,
+        assembler = self.keyframes_in.assembler
+        values = {"keyframes": assembler.completed, "keyframes_processed": self.keyframes_done,
                   "masks_published": n, "masks_dynamic": self.masks_dynamic,
                   "masks_distrusted": self.masks_distrusted,
                   "masked_fraction_mean": self.fraction_sum / n if n else 0.0,
@@ -261,12 +179,11 @@ class EraserNode(StageNode):
                   "latency_ms_mean": self.latency_ms_sum / n if n else 0.0,
                   "keyframe_rate_hz": self.rate.hz,
                   "processed_without_render": self.without_render,
-                  **{f"render_{k}": v for k, v in self.renders.items()},
+                  **self.render_client.diagnostic_values(),
                   "renders_after_mapped": self.renders_after_mapped,
                   "queue_length": self.queue.keyframes, "queue_on_disk": self.queue.keyframes_on_disk,
-                  "bad_keyframe_parts": self.bad_parts, "bad_keyframes": self.bad_keyframes,
-                  "bad_render_replies": self.bad_replies, "incomplete_packets": self.assembler.pending,
-                  "dropped_packets": self.assembler.dropped}
+                  "bad_keyframe_parts": self.keyframes_in.bad, "bad_keyframes": self.bad_keyframes,
+                  "incomplete_packets": assembler.pending, "dropped_packets": assembler.dropped}
         if self.eraser is None:
             return NodeStatus(Level.WARN, "dynamic eraser off (eraser.enabled false)", values)
         if RENDER_OUTCOMES.get(self.last_render, False):

@@ -23,7 +23,6 @@ mapping go on without it. Settings: params sections ``loop_closer_node``
 from __future__ import annotations
 
 import json
-import os
 import threading
 import time
 from pathlib import Path as FilePath
@@ -31,17 +30,12 @@ from typing import Any, Optional
 
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray
-from geometry_msgs.msg import PoseStamped
 from nav_msgs.msg import Path
-from sensor_msgs.msg import CameraInfo, Image
 
 from msg_adapters import topics as T
 from msg_adapters.diagnostics import parse_diagnostic_array
 from msg_adapters.exchange import batch_to_path, exchange_topic
-from msg_adapters.keyframe import PART_TOPICS, KeyframeAssembler
-from msg_adapters.loop import (LOOP_CONSTRAINTS_TOPIC, RENDER_REQUEST_TOPIC, REPLY_TOPICS, RenderReply,
-                               RenderReplyAssembler, RenderRequest, constraint_from_record,
-                               loop_constraint_to_path, render_request_to_msg)
+from msg_adapters.loop import LOOP_CONSTRAINTS_TOPIC, constraint_from_record, loop_constraint_to_path
 from vings_core.errors import ConfigError, InputError
 from vings_core.eval.output import RunOutput
 from vings_core.exchange.config import KEEPER
@@ -51,9 +45,10 @@ from vings_core.types import CameraModel, Keyframe
 from vings_core.util import atomic_write, probe_writable_dir
 
 from . import registry
-from .node_base import BatchInbox, Level, NodeStatus, StageNode
-from .node_common import RateMeter, worth_reporting
+from .node_base import BatchInbox, KeyframeInbox, Level, NodeStatus, StageNode
+from .node_common import RateMeter, lower_priority
 from .node_config import LoopCloserNodeConfig
+from .render_client import RenderClient
 
 #: the front end's /diagnostics status (vings_ros.frontend_node.FrontendNode.STATUS_NAME)
 FRONTEND_STATUS = "vings/frontend"
@@ -140,29 +135,16 @@ class LoopCloserNode(StageNode):
 
     def setup(self) -> None:
         self.lcfg: LoopConfig = self.config("loop")
-        if self.settings.nice > 0:      # tracking (and its keyframes) first
-            try:
-                os.nice(self.settings.nice)
-            except OSError:
-                pass
+        lower_priority(self.settings.nice, 0)      # tracking (and its keyframes) first
         self._abort = threading.Event()         # shutdown: a render wait ends at once
         self._metric = False
         self.vi_state = "unknown"
         self.keyframes_done = 0
         self.keyframes_skipped = 0              # already in a resumed database
-        self.bad_parts = 0
-        self.bad_replies = 0
         self.bad_keyframes = 0
-        self.renders = dict(requests=0, answered=0, empty=0, timeouts=0, no_mapper=0, mismatched=0)
         self.rate = RateMeter(30.0)
         self._last_report = 0.0
         self._reported_records = -1
-        # one render request in flight at a time (the worker waits for it)
-        self._reply_lock = threading.Lock()
-        self._reply_event = threading.Event()
-        self._waiting: Optional[int] = None
-        self._reply: Optional[RenderReply] = None
-        self._next_id = time.time_ns()          # request ids count up from the start time
         self.closer = LoopCloser(self.lcfg, render=self.render_map, metric=self.metric)
         resume = self.resume_file()
         if resume is not None:
@@ -177,57 +159,26 @@ class LoopCloserNode(StageNode):
                 raise ConfigError(f"loop_closer_node.output_dir {self.settings.output_dir}: cannot write "
                                   f"there ({e.strerror or e})") from None
             self.output = RunOutput(self.settings.output_dir)
-        self.assembler = KeyframeAssembler(max_pending=16)
-        self.replies = RenderReplyAssembler(max_pending=16)
         # keyframes are not dropped: FIFO, bounded in memory, the rest in a private folder on disk
         self.queue = KeyframeQueue(self.settings.queue_memory_keyframes, None)
 
         sq = T.sensor_qos
         self.inbox = BatchInbox(self, (KEEPER,))
         self.pub_exchange = self.create_publisher(Path, exchange_topic(LOOP_SOURCE), sq(T.POSE_EXCHANGE_DEPTH))
-        self.pub_request = self.create_publisher(PoseStamped, RENDER_REQUEST_TOPIC, sq(T.OUTPUT_DEPTH))
+        # one render request in flight at a time (the worker waits for it); request ids count up by
+        # one from the start time
+        self.render_client = RenderClient(self, self._abort, ids="counter",
+                                          consequence="the candidate is rejected")
         self.pub_constraints = self.create_publisher(Path, LOOP_CONSTRAINTS_TOPIC, T.latched_qos(100))
-        for part, topic in REPLY_TOPICS.items():
-            self.create_subscription(Image, topic, lambda m, p=part: self._on_reply(p, m), sq(T.OUTPUT_DEPTH))
         self.create_subscription(DiagnosticArray, T.DIAGNOSTICS_TOPIC, self._on_diagnostics, sq(10))
+        self.keyframes_in = KeyframeInbox(self, lambda kf: self.queue.put("kf", kf), connect=self.lcfg.enabled)
         if not self.lcfg.enabled:
             self.get_logger().warning("loop closure is off (loop.enabled false): keyframes are ignored")
-            return
-        for part, type_ in (("image", Image), ("depth", Image), ("inv_depth_var", Image),
-                            ("pose", PoseStamped), ("camera_info", CameraInfo)):
-            self.create_subscription(type_, PART_TOPICS[part], lambda m, p=part: self._on_part(p, m),
-                                     sq(T.OUTPUT_DEPTH * 4))
 
     def ready_message(self) -> str:
         return f"loop closer ready: {len(self.closer.db)} keyframes, {len(self.closer.loops)} loops"
 
     # ------------------------------------------------------------------------------ callbacks
-
-    def _on_part(self, part: str, msg) -> None:
-        try:
-            kf = self.assembler.add(part, msg)
-        except InputError as e:
-            self.bad_parts += 1
-            if worth_reporting(self.bad_parts):
-                self.get_logger().warning(f"dropped a malformed keyframe part ({self.bad_parts} so far): {e}")
-            return
-        if kf is not None:
-            self.queue.put("kf", kf)
-
-    def _on_reply(self, part: str, msg: Image) -> None:
-        try:
-            reply = self.replies.add(part, msg)
-        except InputError as e:
-            self.bad_replies += 1
-            if worth_reporting(self.bad_replies):
-                self.get_logger().warning(f"ignored a malformed render reply ({self.bad_replies} so far): {e}")
-            return
-        if reply is None:
-            return
-        with self._reply_lock:
-            if reply.request_id == self._waiting:
-                self._reply = reply
-                self._reply_event.set()
 
     def _on_diagnostics(self, msg: DiagnosticArray) -> None:
         try:
@@ -255,42 +206,7 @@ class LoopCloserNode(StageNode):
         reply. None (no map to render) when no mapper subscribes, the reply does not come, says the
         map is empty, or does not fit ``camera``. Worker thread (never the executor's: the replies
         arrive there)."""
-        if self._abort.is_set():
-            return None
-        if self.count_subscribers(RENDER_REQUEST_TOPIC) == 0:
-            self.renders["no_mapper"] += 1
-            return None
-        self._next_id += 1
-        rid = self._next_id
-        with self._reply_lock:
-            self._waiting, self._reply = rid, None
-            self._reply_event.clear()
-        self.pub_request.publish(render_request_to_msg(RenderRequest(rid, T_wc, older_than, camera),
-                                                       self.ros.world_frame))
-        self.renders["requests"] += 1
-        deadline = time.monotonic() + self.settings.render_timeout_s
-        while not self._reply_event.wait(0.05):
-            if self._abort.is_set() or time.monotonic() >= deadline:
-                break
-        with self._reply_lock:
-            reply, self._waiting, self._reply = self._reply, None, None
-        if reply is None:
-            self.renders["timeouts"] += 1
-            if worth_reporting(self.renders["timeouts"]):
-                self.get_logger().warning(f"render request {rid}: no reply within {self.settings.render_timeout_s:g} s "
-                                          f"({self.renders['timeouts']} so far); the candidate is rejected")
-            return None
-        self.renders["answered"] += 1
-        if reply.empty:
-            self.renders["empty"] += 1
-            return None
-        if reply.color.shape[:2] != (camera.height, camera.width):
-            self.renders["mismatched"] += 1
-            if worth_reporting(self.renders["mismatched"]):
-                self.get_logger().warning(f"render reply {rid} is {reply.color.shape[1]}x{reply.color.shape[0]} "
-                                          f"but the keyframes are {camera.width}x{camera.height}")
-            return None
-        return reply.as_dict()
+        return self.render_client.request(T_wc, camera, older_than, self.settings.render_timeout_s).render
 
     # ----------------------------------------------------------------------------- the worker
 
@@ -355,13 +271,14 @@ class LoopCloserNode(StageNode):
                   "keyframe_rate_hz": self.rate.hz, "queue_length": self.queue.keyframes,
                   "queue_on_disk": self.queue.keyframes_on_disk, "loops": len(self.closer.loops),
                   **self.closer.summary(), "vi_state": self.vi_state, "metric": self._metric,
-                  **{f"render_{k}": v for k, v in self.renders.items()},
-                  "bad_keyframe_parts": self.bad_parts, "bad_render_replies": self.bad_replies,
-                  "incomplete_packets": self.assembler.pending, "dropped_packets": self.assembler.dropped,
+                  **self.render_client.diagnostic_values(), "bad_keyframe_parts": self.keyframes_in.bad,
+                  "incomplete_packets": self.keyframes_in.assembler.pending,
+                  "dropped_packets": self.keyframes_in.assembler.dropped,
                   "checkpoints": self.checkpoints}
         if not self.lcfg.enabled:
             return NodeStatus(Level.WARN, "loop closure off (loop.enabled false)", values)
-        if self.renders["requests"] + self.renders["no_mapper"] and not self.renders["answered"]:
+        renders = self.render_client.counts
+        if renders["requests"] + renders["no_mapper"] and not renders["answered"]:
             return NodeStatus(Level.WARN, "no mapper answers render requests: every candidate is rejected",
                               values)
         return NodeStatus(Level.OK, f"{len(self.closer.loops)} loops closed", values)

@@ -21,7 +21,6 @@ sections ``mapper_node`` (node_config.MapperNodeConfig), ``ros``, ``mapping``, `
 """
 from __future__ import annotations
 
-import os
 import threading
 import time
 from dataclasses import replace
@@ -57,7 +56,7 @@ from vings_core.types import Keyframe, Trajectory
 
 from . import registry
 from .node_base import BatchInbox, Level, NodeStatus, StageNode
-from .node_common import RateMeter, worth_reporting
+from .node_common import RateMeter, lower_priority, worth_reporting
 from .node_config import MapperNodeConfig, QueuePolicy
 
 #: training iterations between two checks for shutdown / a due checkpoint / render requests
@@ -72,24 +71,6 @@ def _unpack(packed: tuple[tuple[int, int], np.ndarray]) -> np.ndarray:
     """A buffered mask ``(shape, np.packbits(mask))`` -> ``(H, W)`` bool."""
     shape, bits = packed
     return np.unpackbits(bits, count=shape[0] * shape[1]).reshape(shape).astype(bool)
-
-
-def lower_priority(nice: int, threads: int) -> None:
-    """Make the mapper yield the CPU to tracking: add ``nice`` to this process's niceness and use
-    ``threads`` torch / numba threads (0 = leave)."""
-    if nice > 0:
-        try:
-            os.nice(nice)
-        except OSError:
-            pass
-    if threads > 0:
-        import torch
-        torch.set_num_threads(threads)
-        try:
-            import numba
-            numba.set_num_threads(min(threads, numba.config.NUMBA_NUM_THREADS))
-        except Exception:  # noqa: BLE001 - numba absent or threading layer fixed
-            pass
 
 
 class MapperNode(StageNode):

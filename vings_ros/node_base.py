@@ -42,19 +42,23 @@ from pathlib import Path
 from typing import Any, Callable, ClassVar, Iterable, Optional
 
 from diagnostic_msgs.msg import DiagnosticArray
+from geometry_msgs.msg import PoseStamped
 from nav_msgs.msg import Path as PathMsg
 from rclpy.node import Node
+from sensor_msgs.msg import CameraInfo, Image
 
 from msg_adapters import topics as T
 from msg_adapters.diagnostics import diagnostic_array, make_status
 from msg_adapters.exchange import exchange_topic, path_to_batch
+from msg_adapters.keyframe import PART_TOPICS, KeyframeAssembler
 from vings_core.config import LIBRARY_SECTIONS, config_class
 from vings_core.errors import ConfigError, InputError, VingsError
 from vings_core.exchange import IncrementBatch
+from vings_core.types import Keyframe
 from vings_core.util import check_output_file, remove_stale_temps
 
 from .node_common import (InputQueue, Worker, check_parameters, graph_layout, node_sections,
-                          param_rules, rss_mb, section_config)
+                          param_rules, rss_mb, section_config, worth_reporting)
 from .node_config import CheckpointSettings, QueuePolicy, RosConfig
 from .registry import SHARED_SECTION, NodeSpec
 
@@ -102,6 +106,38 @@ class BatchInbox:
         with self._lock:
             items, self._items = self._items, []
         return items
+
+
+class KeyframeInbox:
+    """The front end's keyframe packets (the five part topics of ``msg_adapters.keyframe``),
+    assembled by stamp on the executor thread (:attr:`assembler`); each complete keyframe goes to
+    ``on_keyframe``. A malformed part is reported (rate-limited), counted in :attr:`bad` and dropped.
+    ``connect`` False: no subscriptions (a node that ignores keyframes keeps zero counts)."""
+
+    PART_TYPES = (("image", Image), ("depth", Image), ("inv_depth_var", Image), ("pose", PoseStamped),
+                  ("camera_info", CameraInfo))
+
+    def __init__(self, node: Node, on_keyframe: Callable[[Keyframe], None], connect: bool = True) -> None:
+        self._node = node
+        self._on_keyframe = on_keyframe
+        self.assembler = KeyframeAssembler(max_pending=16)
+        self.bad = 0
+        if connect:
+            qos = T.sensor_qos(T.OUTPUT_DEPTH * 4)
+            for part, type_ in self.PART_TYPES:
+                node.create_subscription(type_, PART_TOPICS[part], lambda m, p=part: self.add(p, m), qos)
+
+    def add(self, part: str, msg: Any) -> None:
+        """One part (a callback; tests call it directly)."""
+        try:
+            kf = self.assembler.add(part, msg)
+        except InputError as e:
+            self.bad += 1
+            if worth_reporting(self.bad):
+                self._node.get_logger().warning(f"dropped a malformed keyframe part ({self.bad} so far): {e}")
+            return
+        if kf is not None:
+            self._on_keyframe(kf)
 
 
 class StageNode(Node):

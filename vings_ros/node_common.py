@@ -258,6 +258,24 @@ class RateMeter:
         return (len(self._t) - 1) / max(self._t[-1] - self._t[0], 1e-9)
 
 
+def lower_priority(nice: int, threads: int) -> None:
+    """Make a node yield the CPU to tracking: add ``nice`` to this process's niceness (0 = leave; not
+    allowed: ignored) and use ``threads`` torch / numba threads (0 = leave)."""
+    if nice > 0:
+        try:
+            os.nice(nice)
+        except OSError:
+            pass
+    if threads > 0:
+        import torch
+        torch.set_num_threads(threads)
+        try:
+            import numba
+            numba.set_num_threads(min(threads, numba.config.NUMBA_NUM_THREADS))
+        except Exception:  # noqa: BLE001 - numba absent or threading layer fixed
+            pass
+
+
 def rss_mb() -> float:
     """Current resident set size of this process (MiB)."""
     try:
