@@ -1,7 +1,7 @@
 """History store: keyframes that left the mapper's local window, kept for history training.
 
 A record is a keyframe in compact form (:func:`compact_keyframe`: RGB uint8, depth and
-inverse-depth variance float16, validity and the dynamic mask bool; ~0.7 MB at 376x240), keyed by the keyframe's stamp.
+inverse-depth variance float16, validity and the dynamic mask bool; ~0.8 MB at 376x240), keyed by the keyframe's stamp.
 Records live in host memory up to ``memory_budget_bytes``; beyond it the least recently used ones
 are written to ``.npz`` files (once: records never change) and read back when training samples
 them, so a long run's history costs disk, not memory. A file found missing or damaged is reported
