@@ -127,8 +127,9 @@ class DynamicEraser:
         pick = {Cue.RERENDER: rr, Cue.MOTION: dyn_mo, Cue.BOTH: dyn_mo | (rr & ~still)}[cfg.cue]
         mask = self._finish(labels, pick)
         if mask.mean() > cfg.max_masked_fraction:
-            note = note + ("; " if note else "") + (f"mask covered {100 * mask.mean():.0f} % of the image (> max_masked_fraction "
+            drop = (f"mask covered {100 * mask.mean():.0f} % of the image (> max_masked_fraction "
                     f"{100 * cfg.max_masked_fraction:.0f} %): map or tracking disagree with the whole view; no mask")
+            note = f"{note}; {drop}" if note else drop
             log.warning("eraser: keyframe %d: %s", int(kf.stamp_ns), note)
             mask = np.zeros((H, W), bool)
         variants = {}
