@@ -225,6 +225,9 @@ def exp_dynamic(a) -> dict:
                 pooled.setdefault(k, []).extend(v)
             _save(path.name, {"eraser": on, "scores": {k: [vars(x) for x in v] for k, v in scores.items()}})
             del on_r
+            if not a.with_off:
+                runs[path.name] = {"eraser": on, "frames_objects_over_15pct": _big_share(path)}
+                continue
             off_m, off_r, _ = _run(path, eraser=False, truth=False)
             off = {"ate_se3_m": off_m["ate_se3_m"], **_safe(_swept, off_r, path, kw, seed),
                    **_safe(_static_psnr, off_r, path)}
@@ -270,6 +273,8 @@ def main(argv=None) -> int:
     ap.add_argument("--scenes", default="room,street", help="dynamic: room,street")
     ap.add_argument("--room-frames", type=int, default=150)
     ap.add_argument("--street-length", type=float, default=150.0, help="street route length (m), at 10 fps")
+    ap.add_argument("--no-off", dest="with_off", action="store_false",
+                    help="dynamic: only the runs with the eraser (masks and cost; no map/tracking comparison)")
     a = ap.parse_args(argv)
     table = {"dynamic": lambda: exp_dynamic(a), "static": lambda: exp_static(a)}
     return run_selected(ap, a, table, log)
