@@ -279,7 +279,7 @@ def _nofalse_run(path: Path, use_imu: bool) -> dict:
     for r in recs:
         t = r["reason"]
         key = ("matches" if "matches (need" in t else "matches with depth" if "with depth" in t else
-               "pnp" if t.startswith("PnP") else "scale" if "relative scale" in t else
+               "pnp" if t.startswith("PnP") else "scale" if ("relative scale" in t or t.startswith("scale")) else
                "coverage" if "covers" in t else "render L1" if "above" in t else
                "spacing" if "after the last loop" in t else
                "nested" if "nested" in t else "no map" if "no map" in t else
