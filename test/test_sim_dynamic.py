@@ -21,9 +21,10 @@ def _corners_world(box, size, t) -> np.ndarray:
     return p + (signs * h) @ R.T
 
 
-def _check_ahead_on_the_road(scene, ts, min_depth=2.0):
+def _check_ahead_on_the_road(scene, ts, min_depth=2.0) -> int:
     """At every time in ``ts`` the lead car stands on the road (bottom at the cars' 10 cm
-    clearance), wholly in front of the camera, on the ego's own path and headed along it."""
+    clearance), wholly in front of the camera, on the ego's own path and headed along it.
+    Returns how many times were checked."""
     box, size, info = _lead(scene)
     # the ego body's path, densely, far enough to hold every point the lead is at
     path_t = np.arange(0.0, ts.max() + 6.0, 0.01)
@@ -46,6 +47,7 @@ def _check_ahead_on_the_road(scene, ts, min_depth=2.0):
         # at least min_ahead_m (along the route) ahead of the body, a little less as the crow flies
         ego = scene.T_wb(t)[0][:2, 3]
         assert np.linalg.norm(c[:2] - ego) > 0.9 * info["min_ahead_m"]
+    return len(ts)
 
 
 def test_street_lead_car_is_ahead_on_the_road_and_in_the_mask():
@@ -80,7 +82,7 @@ def test_lead_car_follows_the_retimed_motion(kw):
     if "retrace" in kw:                                  # across the end of the first lap
         lap = scene.revisit["first_pass_end_s"]
         ts = np.concatenate([ts, lap + np.array([-1.0, -0.3, 0.0, 0.4])])
-    _check_ahead_on_the_road(scene, ts)
+    assert _check_ahead_on_the_road(scene, ts) == len(ts) >= 15
 
 
 def test_dynamic_street_keeps_the_static_street_and_is_deterministic():

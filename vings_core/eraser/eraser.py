@@ -19,7 +19,7 @@ from ..types import Keyframe
 from .config import Cue, EraserConfig, LossTerms
 from .motion import motion_residual, moving_proposals, static_proposals
 from .proposals import make_segmenter
-from .score import dynamic_proposals, rerender_loss
+from .score import dynamic_proposals, rerender_loss, rerender_maps
 
 log = logging.getLogger(__name__)
 
@@ -99,8 +99,9 @@ class DynamicEraser:
         terms = [cfg.loss_terms] if not cfg.ablation else list(LossTerms)
         dyn_rr: dict[LossTerms, np.ndarray] = {}
         if want_rr and render is not None and covered.any():
+            maps = rerender_maps(np.asarray(render["color"]), image)      # once for every variant
             for tm in terms:
-                loss = rerender_loss(np.asarray(render["color"]), image, var, covered, tm, cfg.sigma_clip)
+                loss = rerender_loss(None, None, var, covered, tm, cfg.sigma_clip, maps=maps)
                 dyn_rr[tm], _ = dynamic_proposals(labels, loss, covered, cfg)
         for tm in terms:
             dyn_rr.setdefault(tm, np.zeros(n, bool))

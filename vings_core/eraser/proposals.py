@@ -13,7 +13,6 @@ logit is <= 0 form one background proposal).
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Optional
 
 import cv2
 import numpy as np
@@ -125,10 +124,3 @@ def make_segmenter(cfg: EraserConfig):
     from skimage.segmentation import felzenszwalb, slic  # noqa: F401, PLC0415 - loaded now, not on the first keyframe (~2 s)
     return lambda image: segment_weight_free(image, cfg)
 
-
-def proposal_stats(labels: np.ndarray, values: np.ndarray, weights: Optional[np.ndarray] = None,
-                   n: Optional[int] = None) -> np.ndarray:
-    """Per-proposal sum of ``values`` (times ``weights``): ``(n,)`` float64 (a bincount)."""
-    n = int(labels.max()) + 1 if n is None else int(n)
-    w = values if weights is None else values * weights
-    return np.bincount(labels.ravel(), weights=np.asarray(w, dtype=np.float64).ravel(), minlength=n)

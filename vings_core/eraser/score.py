@@ -53,16 +53,25 @@ def ssim_map_cv(a: np.ndarray, b: np.ndarray, size: int = 11, sigma: float = 1.5
     return s.mean(-1) if s.ndim == 3 else s
 
 
-def rerender_loss(render: np.ndarray, image: np.ndarray, inv_depth_var: Optional[np.ndarray],
-                  covered: np.ndarray, terms: LossTerms, sigma_clip: float = 10.0) -> np.ndarray:
-    """Per-pixel re-render loss ``(H, W)`` float32 of ``render`` against ``image`` (both
-    ``(H, W, 3)`` RGB in [0, 1]); 0 outside ``covered``. ``terms``: which product (module docstring);
-    ``inv_depth_var`` may be None only for terms without Sigma."""
+def rerender_maps(render: np.ndarray, image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(L_1, L_SSIM)`` maps ``(H, W)`` float32 of ``render`` against ``image`` (both ``(H, W, 3)``
+    RGB in [0, 1]): the factors every :class:`LossTerms` variant is a product of."""
     r = np.ascontiguousarray(render, dtype=np.float32)
     g = np.ascontiguousarray(image, dtype=np.float32)
-    out = np.abs(r - g).mean(-1)
+    return np.abs(r - g).mean(-1), np.clip((1.0 - ssim_map_cv(r, g)) * 0.5, 0.0, 1.0)
+
+
+def rerender_loss(render: np.ndarray, image: np.ndarray, inv_depth_var: Optional[np.ndarray],
+                  covered: np.ndarray, terms: LossTerms, sigma_clip: float = 10.0,
+                  maps: Optional[tuple[np.ndarray, np.ndarray]] = None) -> np.ndarray:
+    """Per-pixel re-render loss ``(H, W)`` float32 of ``render`` against ``image`` (both
+    ``(H, W, 3)`` RGB in [0, 1]); 0 outside ``covered``. ``terms``: which product (module docstring);
+    ``inv_depth_var`` may be None only for terms without Sigma. ``maps``: :func:`rerender_maps` of
+    the same pair when the caller already has them (several variants of one keyframe)."""
+    l1, l_ssim = rerender_maps(render, image) if maps is None else maps
+    out = l1
     if terms in (LossTerms.SSIM_L1, LossTerms.SSIM_L1_SIGMA):
-        out = out * np.clip((1.0 - ssim_map_cv(r, g)) * 0.5, 0.0, 1.0)
+        out = out * l_ssim
     if terms == LossTerms.SSIM_L1_SIGMA:
         if inv_depth_var is None:
             raise ValueError("the Sigma term needs the keyframe's inverse-depth variance")
