@@ -27,7 +27,15 @@ demo: $(STAMP)
 	$(VENV)/bin/vings run $(DEMO_OUT)/room --out $(DEMO_OUT)/run
 	@echo "demo outputs: $(DEMO_OUT)/run (trajectory.tum, keyframes.tum, map.ply, checkpoint.pt, metrics.json, renders/)"
 
-test: $(STAMP)
+VIZ_STAMP := $(VENV)/.viz-$(shell cat requirements-viz.txt | cksum | cut -d' ' -f1)
+
+# the optional viz extra (rerun SDK), for the .rrd test
+$(VIZ_STAMP): $(STAMP) requirements-viz.txt
+	$(VPY) -m pip install -q -r requirements-viz.txt
+	rm -f $(VENV)/.viz-*
+	touch $(VIZ_STAMP)
+
+test: $(STAMP) $(VIZ_STAMP)
 	$(VPY) -m pytest -q $(PYTEST_ARGS)
 
 test-slow: $(STAMP)

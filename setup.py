@@ -23,7 +23,7 @@ setup(
     version="0.1.0",
     packages=find_packages(include=["vings_core", "vings_core.*", "vings_ros", "vings_ros.*",
                                     "msg_adapters", "msg_adapters.*"]),
-    package_data={"vings_ros": ["config/*.xml"]},
+    package_data={"vings_ros": ["config/*.xml", "config/*.json"]},
     data_files=[
         ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE}"]),
         (f"share/{PACKAGE}", ["package.xml"]),
@@ -33,7 +33,7 @@ setup(
     python_requires=">=3.11,<3.12",
     install_requires=[],  # pinned set in requirements.txt (see README); ROS deps come from package.xml
     # optional CUDA route of the renderer (a CUDA torch build is needed too; JIT-compiles on first use)
-    extras_require={"cuda": ["gsplat==1.5.3"]},
+    extras_require={"cuda": ["gsplat==1.5.3"], "viz": ["rerun-sdk==0.41.0"]},
     zip_safe=False,
     maintainer="VINGS-ROS developers",
     maintainer_email="vings-ros@example.org",

@@ -39,7 +39,7 @@ from .exchange import ExchangeConfig, IncrementBatch, PoseFollower, PoseKeeper
 from .geometry import rotation_angle_deg
 from .io.base import Source, SourceOptions
 from .keyframe_queue import KeyframeQueue
-from .profiling import timed, timed_iter
+from .profiling import PROFILE, timed, timed_iter
 from .stages import MAPPER_SOURCE
 from .stages import map_keyframe, retrain_after_loop
 from .types import POSED_STATES, Frame, Keyframe, TrackState, Trajectory
@@ -59,6 +59,8 @@ class RunConfig:
     ``eval_keyframes``/``eval_novel``: at most this many keyframes / non-keyframe frames are rendered
     for PSNR (evenly spaced). ``save_renders``: keyframe renders saved under renders/.
     ``checkpoint_every``: keyframes between map checkpoints (0 = only at the end).
+    ``report``: write ``report.html`` and ``bev.png`` at the end (docs/report.md; the report's data,
+    ``timeline.jsonl``, ``run.json``, ``views/``, are written either way).
     ``queue_memory_keyframes``: without ``sync``, keyframes waiting for the mapper thread that are
     held in memory; later ones spill to disk (:class:`~vings_core.keyframe_queue.KeyframeQueue`),
     so memory stays bounded and tracking never waits. ``queue_spill_dir``: their folder (empty: a
@@ -85,6 +87,7 @@ class RunConfig:
     eval_novel: int = 40
     save_renders: int = 6
     checkpoint_every: int = 20
+    report: bool = True
     max_mapper_lag: int = 0
     mapper_nice: int = 10
     queue_memory_keyframes: int = 8
@@ -230,14 +233,16 @@ class SlamRunner:
                  on_frame: Optional[Callable[[dict], None]] = None,
                  stages: tuple[RunnerStage, ...] = (), exchange_cfg: Optional[ExchangeConfig] = None,
                  vio_cfg: Optional["ViConfig"] = None, loop_cfg: Optional["LoopConfig"] = None,
-                 eraser_cfg: Optional["EraserConfig"] = None) -> None:
+                 eraser_cfg: Optional["EraserConfig"] = None, rerun_path: Optional[str] = None) -> None:
         """``vio_cfg``: the visual-inertial fusion's configuration (default: section ``vio`` of the
         params file; ``enabled=False`` is ``--no-imu``). ``loop_cfg``: the loop closer's (default:
         section ``loop``; ``enabled=False`` is ``--no-loop``); the loop closer runs in the mapper's
         thread after each mapped keyframe, its renders from the map as trained. ``eraser_cfg``: the
         dynamic eraser's (default: section ``eraser``; ``enabled=False`` is ``--no-eraser``); it
         runs in the mapper's thread on each keyframe before its Gaussians are added, and its mask
-        goes to the mapper at once and to the front end for its next frame."""
+        goes to the mapper at once and to the front end for its next frame. ``rerun_path``: log the
+        run for the rerun viewer to this ``.rrd`` file (:mod:`vings_core.report.rerun_log`; needs
+        the optional rerun SDK)."""
         from .frontend import Frontend, FrontendConfig
         from .mapping import Mapper, MapperConfig
         from .vio.config import ViConfig
@@ -309,6 +314,16 @@ class SlamRunner:
         self.eraser_results: list[dict] = []     # per keyframe: EraserResult.summary()
         self._masks: dict[int, bytes] = {}       # stamp -> PNG (mono8), written at the end
         self._eraser_epoch = (1, 0)              # (front-end segments, loop corrections acknowledged)
+        from .report.timeline import Timeline
+        self.timeline: Optional[Timeline] = None     # timeline.jsonl, from run()
+        self._views: list[dict] = []                 # views/ of the saved keyframe renders
+        self._loop_seen = 0                          # loop records already in the timeline
+        self._n_frames = 0
+        self.report_s: Optional[float] = None       # time to draw report.html and bev.png
+        self.rerun = None
+        if rerun_path:
+            from .report.rerun_log import RerunLog
+            self.rerun = RerunLog(rerun_path, cam)
         self.out.prepare()      # after the configuration is known to be valid, before any work
         self._queue.discard_leftovers()     # of a killed earlier run (runs do not resume)
 
@@ -387,11 +402,41 @@ class SlamRunner:
         """Keyframes waiting for the mapper thread (0 in sync mode)."""
         return self._queue.keyframes
 
+    def _record_timeline(self, kf: Keyframe) -> None:
+        """The timeline's line of keyframe ``kf`` (mapper thread, after its mapping and loop check)."""
+        if self.timeline is None or self._abort:
+            return
+        loop = None
+        if self.loop is not None:
+            new = self.loop.records[self._loop_seen:]
+            self._loop_seen = len(self.loop.records)
+            loop = {"candidates": len(new), "accepted": sum(r.get("verdict") == "accepted" for r in new)}
+        er = None
+        if self.eraser is not None and self.eraser_results and self.eraser_results[-1].get("stamp_ns") == kf.stamp_ns:
+            r = self.eraser_results[-1]
+            er = {"masked_fraction": r["masked_fraction"], "time_ms": r["time_ms"]}
+        mp = self.mapper
+        fe = self.frontend
+        self.timeline.record(
+            kf.stamp_ns, {"active": mp.num_active, "passive": mp.num_passive, "on_disk": mp.passive.num_on_disk,
+                          "total": mp.num_gaussians},
+            tracking=None if fe is None else str(fe.state.value),
+            vi_state=None if self.vio is None else str(self.vio.status()["vi_state"]),
+            mapper={"light": self.light_keyframes > self._light_seen, "backlog": self._backlog()},
+            loop=loop, eraser=er)
+        self._light_seen = self.light_keyframes
+        if self.rerun is not None:
+            T = mp.keyframe_poses().get(int(kf.stamp_ns))
+            if T is not None:
+                pts = mp.point_sample(self.rerun.map_points) if self.rerun.want_points() else None
+                self.rerun.keyframe(kf.stamp_ns, T, mp.render(T, kf.camera) if mp.num_gaussians else None, pts)
+
     def _handle(self, kind: str, item: object) -> None:
         if kind == "kf":
             try:
                 self._map_keyframe(item)
                 self._close_loops(item)
+                self._record_timeline(item)
             finally:
                 if self._kf_queued is not None:
                     self._kf_queued.release()
@@ -527,6 +572,20 @@ class SlamRunner:
     def run(self) -> dict:
         """Process the whole source; returns the metrics dict (also written to metrics.json)."""
         t0 = time.perf_counter()
+        from .report.timeline import Timeline
+        own_profile = not PROFILE.enabled   # the timeline's step times (a timer costs ~1 us)
+        if own_profile:
+            PROFILE.enable()
+        self.timeline, self._light_seen = Timeline(PROFILE, t0), 0
+        try:
+            return self._run(t0)
+        finally:
+            if own_profile:
+                PROFILE.disable()
+            if self.rerun is not None:
+                self.rerun.close()
+
+    def _run(self, t0: float) -> dict:
         stamps = self.source.frame_stamps()
         n_total = len(stamps)
         if n_total == 0:
@@ -586,6 +645,7 @@ class SlamRunner:
         keeper's batch, then its keyframes. Returns the frame's tracking state."""
         self._raise_mapper_error()
         self._take_corrections()
+        ests = None
         if self.gt_kf is not None:
             T, kf = self.gt_kf.process(frame)
             if T is not None:
@@ -601,6 +661,14 @@ class SlamRunner:
                 self.keeper.own_similarity(sims)
         if keep_image:
             self._frame_images[frame.stamp_ns] = frame.rgb().copy()
+        if self.rerun is not None:
+            T = None
+            if self.gt_kf is not None:
+                T = self._gt_poses.get(frame.stamp_ns)
+            elif ests and ests[-1].state in POSED_STATES:
+                T = ests[-1].T_wc
+            self.rerun.frame(self._n_frames, frame.stamp_ns, T, frame.rgb())
+        self._n_frames += 1
         self._send_moves(worker, frame.stamp_ns)
         for kf in kfs:
             self._submit(kf, worker)
@@ -757,7 +825,7 @@ class SlamRunner:
         images, renders = self._image_metrics(kf_traj, traj)
         m.update(images)
         return {"traj": traj, "kf_traj": kf_traj, "metrics": m, "renders": renders, "segments": segments,
-                "segment_trajs": seg_trajs, "loops": self.loop_report()}
+                "segment_trajs": seg_trajs, "loops": self.loop_report(), "gt": gt}
 
     def loop_report(self) -> Optional[dict]:
         """``loops.json``'s content (None without a loop closer)."""
@@ -798,6 +866,7 @@ class SlamRunner:
                 out.save_render(name, rgb, staged=True)
             for stamp, png in self._masks.items():
                 out.write_mask(stamp, png, staged=True)
+            self._write_report_data(final)
             out.begin_final()
             out.commit_staged()     # milliseconds of renames
         except BaseException:
@@ -812,6 +881,27 @@ class SlamRunner:
         self.out.remove_partials()
         return out
 
+    def _write_report_data(self, final: dict) -> None:
+        """The report's data into the staging folder (``timeline.jsonl``, ``run.json``,
+        ``ground_truth.tum``, ``views/``), then, with ``run.report``, ``bev.png`` and
+        ``report.html`` drawn from the staged files (docs/report.md). A failure of the drawing is
+        logged and leaves the run's other outputs complete."""
+        from .report import run_files
+        out = self.out
+        stage = out.staging_path(out.out_dir / "x").parent
+        gt = final.get("gt")
+        run_files.write_data(stage, timeline=self.timeline, info=run_files.run_info(self), gt=gt, views=self._views)
+        if not self.cfg.report:
+            return
+        t0 = time.perf_counter()
+        try:
+            with timed("io", "report"):
+                m = dict(final["metrics"], wall_s=None, fps=None, peak_rss_mb=peak_rss_mb())
+                run_files.write_report(stage, m, gt, out.out_dir)
+            self.report_s = time.perf_counter() - t0
+        except Exception as e:  # noqa: BLE001 - the report is a view of the outputs, never their loss
+            log.exception("the report could not be drawn (%s); the run's outputs are complete", e)
+
     def _image_metrics(self, kf_traj: Trajectory, traj: Trajectory) -> tuple[dict, dict]:
         """PSNR/SSIM figures and the keyframe renders to save (``{file name: RGB}``)."""
         kf_poses = dict(zip(kf_traj.stamps_ns.tolist(), kf_traj.poses))
@@ -819,6 +909,7 @@ class SlamRunner:
         eval_kfs = _even_subset([s for s in self._kf_stamps if s in kf_poses and s in self._kf_images],
                                 self.cfg.eval_keyframes)
         save = set(_even_subset(eval_kfs, self.cfg.save_renders))
+        self._views = []
         for s in eval_kfs:
             out = self.mapper.render(kf_poses[s], self.camera)
             ref = self._kf_images[s][1].astype(np.float32) / 255.0
@@ -826,6 +917,8 @@ class SlamRunner:
             ssims.append(ssim(out["color"], ref))
             if s in save:
                 renders[f"{RUN_RENDER_PREFIX}{s}.png"] = out["color"]
+                self._views.append({"stamp_ns": int(s), "psnr_db": psnrs[-1], "ssim": ssims[-1],
+                                    "input": self._kf_images[s][1], "depth": out["depth"], "normal": out["normal"]})
         frame_poses = dict(zip(traj.stamps_ns.tolist(), traj.poses))
         kf_set = set(self._kf_stamps)
         novel = _even_subset([s for s in sorted(self._frame_images) if s in frame_poses and s not in kf_set],

@@ -51,6 +51,12 @@ class Profile:
             st.total_s += seconds
             st.max_s = max(st.max_s, seconds)
 
+    def snapshot(self) -> dict[tuple[str, str], float]:
+        """Total seconds so far of every ``(stage, step)`` (a copy; the run's timeline takes
+        differences of these)."""
+        with self._lock:
+            return {k: st.total_s for k, st in self.steps.items()}
+
     def table(self, wall_s: float | None = None) -> list[dict]:
         """Rows ``{stage, step, calls, total_s, mean_ms, max_ms, share}`` sorted by stage, then total
         time; ``share`` is the fraction of ``wall_s`` (default: the time since :meth:`enable`)."""

@@ -12,7 +12,7 @@ import importlib
 import sys
 from typing import Optional, Sequence
 
-SUBCOMMANDS = ("sim", "info", "eval", "run", "replay", "launch")
+SUBCOMMANDS = ("sim", "info", "eval", "run", "report", "replay", "launch")
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -31,6 +31,8 @@ from .ros_env import cleanup_fastdds_shm, ros_environment, shm_snapshot
 
 #: the node ``--record`` starts (its one argument: the output file)
 RECORDER = "recorder_node"
+#: the node ``--rerun`` starts (its one argument: the .rrd file)
+RERUN = "rerun_node"
 #: a node whose settings have ``shutdown_timeout_s`` (the mapper: time to finish queued keyframes)
 #: gets that plus SAVE_MARGIN_S (to write its checkpoint) before it is killed, at least its
 #: registry ``stop_timeout_s``
@@ -46,6 +48,7 @@ def default_nodes() -> tuple[str, ...]:
 class LaunchOptions:
     params_file: Optional[str] = None
     record: Optional[str] = None
+    rerun: Optional[str] = None
     use_sim_time: bool = False
     domain_id: Optional[int] = None
     checkpoint: Optional[str] = None
@@ -86,6 +89,8 @@ class Launcher:
         names = list(default_nodes() if opt.nodes is None else opt.nodes)
         if opt.record and RECORDER not in names:
             names.append(RECORDER)
+        if opt.rerun and RERUN not in names:
+            names.append(RERUN)
         for name in names:
             registry.node_spec(name)    # a KeyError naming the known nodes
         order = [n.name for n in registry.NODES]
@@ -109,6 +114,14 @@ class Launcher:
             raise ConfigError(f"--record {opt.record}: the output must be a .mcap file")
         if opt.record:      # before any node starts, not when the recorder dies
             opt.record = str(check_output_file(opt.record, "--record", ConfigError))
+        if opt.rerun:
+            if not str(opt.rerun).endswith(".rrd"):
+                raise ConfigError(f"--rerun {opt.rerun}: the output must be a .rrd file")
+            opt.rerun = str(check_output_file(opt.rerun, "--rerun", ConfigError))
+            try:
+                import rerun  # noqa: F401 - the optional extra, checked before any node starts
+            except ImportError:
+                raise ConfigError("--rerun needs the rerun SDK, an optional extra: pip install '.[viz]'") from None
         if opt.record and Path(opt.record).exists():
             raise ConfigError(f"--record {opt.record}: the file exists; recordings are never "
                               f"overwritten, choose a new name")
@@ -120,7 +133,8 @@ class Launcher:
     def start(self) -> None:
         self.snapshot = shm_snapshot()
         for name in reversed(self.nodes):
-            extra = [str(Path(self.opt.record).resolve())] if name == RECORDER else []
+            extra = ([str(Path(self.opt.record).resolve())] if name == RECORDER else
+                     [str(Path(self.opt.rerun).resolve())] if name == RERUN else [])
             self.procs[name] = subprocess.Popen(node_command(name, self.opt, extra), env=self.env,
                                                 start_new_session=True)
             self._say(f"started {name} (pid {self.procs[name].pid})")

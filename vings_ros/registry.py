@@ -58,6 +58,7 @@ NODES: tuple[NodeSpec, ...] = (
     NodeSpec("eraser_node", "vings_ros.eraser_node", "vings_ros.node_config:EraserNodeConfig",
              reads=("eraser",), stop_timeout_s=30.0, optional=True),
     NodeSpec("recorder_node", "vings_ros.recorder", launch=Launch.ON_REQUEST),
+    NodeSpec("rerun_node", "vings_ros.rerun_node", launch=Launch.ON_REQUEST, optional=True),
 )
 
 #: the shared settings section of every node (frames, diagnostics rate): vings_ros.node_config.RosConfig

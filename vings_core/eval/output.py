@@ -47,6 +47,9 @@ CHECKPOINT_PARTIAL_FILE = "checkpoint.partial.pt"
 TRAJECTORY_PARTIAL_FILE = "trajectory.partial.tum"
 KEYFRAMES_PARTIAL_FILE = "keyframes.partial.tum"
 RUN_RENDER_PREFIX = "kf_"       # the runner's renders: renders/kf_<stamp>.png
+VIEWS_DIR = "views"             # the report's keyframe views: views/kf_<stamp>_{input,depth,normal}.png
+#: the report and its data (docs/report.md), removed with the previous run's outputs
+REPORT_FILES = ("report.html", "bev.png", "timeline.jsonl", "run.json", "ground_truth.tum", "views/index.json")
 STAGING_DIR = ".staging"        # a run's final files before they replace the previous run's
 
 #: metrics.json keys, in file order. Units: wall_s s, fps frames/s, ate_* m, psnr_* dB,
@@ -213,13 +216,15 @@ class RunOutput:
         outputs look like this run's: ``metrics.json`` (written last: its presence marks a
         complete run), the runner's renders ``renders/kf_*.png`` (other files there are not
         ours and stay), the eraser's masks ``masks/kf_*.png``, the segment trajectories
-        ``trajectory_segments/segment_*.tum`` and ``loops.json`` (a run without the loop closer has none). The other files are replaced when
+        ``trajectory_segments/segment_*.tum``, ``loops.json`` (a run without the loop closer has
+        none), the report and its data (``report.html``, ``bev.png``, ``timeline.jsonl``,
+        ``run.json``, ``ground_truth.tum``, ``views/kf_*``). The other files are replaced when
         written."""
         try:
-            for p in (self.metrics_path, self.out_dir / LOOPS_FILE):
+            for p in (self.metrics_path, self.out_dir / LOOPS_FILE) + tuple(self.out_dir / f for f in REPORT_FILES):
                 if p.exists():
                     p.unlink()
-            for d in (self.renders_dir, self.masks_dir):
+            for d in (self.renders_dir, self.masks_dir, self.out_dir / VIEWS_DIR):
                 if d.is_dir():
                     for p in d.glob(f"{RUN_RENDER_PREFIX}*.png"):
                         p.unlink()

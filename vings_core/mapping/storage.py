@@ -240,6 +240,11 @@ class PassiveStore:
                        and c.path.exists()))
 
     @property
+    def num_on_disk(self) -> int:
+        """Gaussians of the chunks spilled to disk."""
+        return int(sum(c.n for c in self.chunks if c.arrays is None))
+
+    @property
     def num_spilled_chunks(self) -> int:
         return int(sum(1 for c in self.chunks if c.arrays is None))
 

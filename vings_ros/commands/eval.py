@@ -1,7 +1,7 @@
 """`vings eval`: trajectory accuracy (ATE Sim(3)/SE(3), scale, RPE) and image quality (PSNR/SSIM,
 LPIPS with a local weights file).
 
-    vings eval EST.tum --gt GT [--json] [--max-dt-ms 10] [--gt-frame camera|body] [--calib FILE]
+    vings eval EST.tum --gt GT [--json] [--plots DIR] [--max-dt-ms 10] [--gt-frame camera|body] [--calib FILE]
     vings eval --images RENDERS_DIR REFERENCE_DIR [--lpips-weights FILE] [--json]
 
 EST is a TUM file of cam0 poses or a run output folder (its trajectory.tum). GT is a TUM file (cam0
@@ -49,6 +49,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="do not correct the estimate's scale (Sim(3)) before RPE")
     p.add_argument("--write-metrics", action="store_true",
                    help="when ESTIMATE is a run folder, merge ATE/scale/RPE into its metrics.json")
+    p.add_argument("--plots", metavar="DIR", help="write trajectory.png, error.png and rpe.png (docs/report.md) to DIR")
     p.add_argument("--images", nargs=2, metavar=("RENDERS_DIR", "REFERENCE_DIR"),
                    help="PSNR/SSIM between images of the same file name in two folders")
     p.add_argument("--lpips-weights", help="local LPIPS state-dict file (enables LPIPS for --images)")
@@ -156,6 +157,17 @@ def eval_trajectory_cli(args: argparse.Namespace) -> dict:
                               interpolate=not args.no_interpolate,
                               rpe_correct_scale=not args.rpe_no_scale)
     out = {"estimate": str(est_path), **info, **res}
+    if args.plots:
+        from vings_core.report.build import trajectory_plots
+        from vings_core.util import atomic_write_bytes
+        d = Path(args.plots)
+        if d.exists() and not d.is_dir():
+            raise InputError(f"--plots {d}: exists and is not a folder")
+        written = []
+        for name, png in trajectory_plots(est, gt, res.get("rpe")).items():
+            atomic_write_bytes(d / name, png)
+            written.append(str(d / name))
+        out["plots"] = written
     if args.write_metrics:
         if run_dir is None:
             raise InputError("--write-metrics needs ESTIMATE to be a run output folder")

@@ -18,6 +18,8 @@ def register(subparsers) -> None:
     p.add_argument("--params", metavar="FILE", help="ROS 2 params YAML (default: params/vings.yaml "
                    "of the package)")
     p.add_argument("--record", metavar="OUT.mcap", help="record every output topic to this MCAP file")
+    p.add_argument("--rerun", metavar="OUT.rrd", help="log poses, keyframe images, renders, depth and map "
+                   "points for the rerun viewer (rerun_node; optional extra: pip install '.[viz]')")
     p.add_argument("--use-sim-time", action="store_true",
                    help="nodes follow /clock (set this when replaying a recording)")
     p.add_argument("--domain-id", type=int, default=None, help="ROS_DOMAIN_ID for the graph")
@@ -65,7 +67,7 @@ def run(args: argparse.Namespace) -> int:
     left_out = {n for n, off in (("mapper_node", args.no_mapper), ("loop_closer_node", args.no_loop),
                                  ("eraser_node", args.no_eraser)) if off}
     nodes = tuple(n for n in default_nodes() if n not in left_out) if left_out else None
-    opt = LaunchOptions(params_file=args.params or str(default_params_file()), record=args.record,
+    opt = LaunchOptions(params_file=args.params or str(default_params_file()), record=args.record, rerun=args.rerun,
                         use_sim_time=args.use_sim_time, domain_id=args.domain_id,
                         checkpoint=args.checkpoint, extra_params=extra, nodes=nodes)
     return Launcher(opt).run()

@@ -27,6 +27,11 @@ def register(subparsers) -> None:
                    help="no loop closure (loop.enabled false), e.g. for ablations")
     p.add_argument("--no-eraser", action="store_true",
                    help="no dynamic eraser (eraser.enabled false): no masks, e.g. for ablations")
+    p.add_argument("--no-report", action="store_true",
+                   help="no report.html / bev.png at the end (run.report false; the report's data are written)")
+    p.add_argument("--rerun", metavar="FILE.rrd",
+                   help="log poses, images, renders, depth and map points for the rerun viewer "
+                        "(optional extra: pip install '.[viz]')")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.add_argument("--json", action="store_true", help="print metrics.json as one JSON line at the end")
     p.add_argument("--profile", action="store_true",
@@ -58,11 +63,12 @@ def run(args: argparse.Namespace) -> int:
     eraser_cfg.enabled = eraser_cfg.enabled and not args.no_eraser
     cfg.sync = cfg.sync or args.sync
     cfg.gt_poses = cfg.gt_poses or args.gt_poses
+    cfg.report = cfg.report and not args.no_report
     source = open_working_source(args.source, source_options(args), cfg.width, cfg.height)
     for w in source.warnings:
         print(f"vings run: warning: {w}", file=sys.stderr)
     runner = SlamRunner(source, args.out, params_file=args.params, run_cfg=cfg, progress=not args.no_progress,
-                        vio_cfg=vio_cfg, loop_cfg=loop_cfg, eraser_cfg=eraser_cfg)
+                        vio_cfg=vio_cfg, loop_cfg=loop_cfg, eraser_cfg=eraser_cfg, rerun_path=args.rerun)
     if args.profile:
         PROFILE.enable()
     metrics = runner.run()
@@ -73,7 +79,9 @@ def run(args: argparse.Namespace) -> int:
     print(f"outputs in {runner.out.out_dir}: trajectory.tum keyframes.tum map.ply checkpoint.pt "
           f"metrics.json "
           f"{'loops.json ' if runner.loop is not None else ''}renders/"
-          f"{' masks/' if runner.eraser is not None else ''}")
+          f"{' masks/' if runner.eraser is not None else ''}"
+          f"{' report.html bev.png' if cfg.report else ''} timeline.jsonl run.json views/"
+          f"{'' if args.rerun is None else ' and ' + args.rerun}")
     if args.json:
         print(json.dumps(metrics))
     else:
