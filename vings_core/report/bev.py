@@ -3,7 +3,8 @@
 "Above" is the run's up direction (:func:`view_basis`): the world's ``+z`` when the run is
 visual-inertial (the world frame is gravity-aligned once the IMU alignment is accepted), otherwise
 the normal of the best-fit plane of the camera path, signed to agree with the cameras' up vectors
-(``-y`` of the optical frame); a nearly straight path (no plane) takes the cameras' mean up vector.
+(``-y`` of the optical frame); a nearly straight path (no plane), or one whose plane is more than
+45 degrees from the cameras' mean up vector (a path curving in 3D), takes that mean up vector.
 
 Each surfel is a disc of its larger standard deviation (at least one pixel, at most
 ``max_radius_px``) filled with its DC colour; a pixel shows the highest surfel covering it.
@@ -25,6 +26,8 @@ import numpy as np
 from ..errors import InputError
 
 SH_C0 = 0.28209479177387814
+#: the path plane's normal is taken for "up" only within 45 degrees of the cameras' mean up vector
+PLANE_UP_COS = math.cos(math.radians(45.0))
 BACKGROUND = np.array([255, 255, 255], np.uint8)
 
 
@@ -112,9 +115,10 @@ def view_basis(T_wc: np.ndarray, gravity_aligned: bool) -> ViewBasis:
     elif len(pos) >= 3:
         _, s, vt = np.linalg.svd(pos - pos.mean(0), full_matrices=False)
         main = vt[0]
-        if s[0] > 0 and s[1] > 0.1 * s[0]:
+        cu = cam_up / max(np.linalg.norm(cam_up), 1e-12)
+        if s[0] > 0 and s[1] > 0.1 * s[0] and abs(vt[2] @ cu) > PLANE_UP_COS:
             up, src = vt[2], UpSource.PATH_PLANE
-        else:   # a line (or a point): the plane is not defined by the path
+        else:   # a line (or a point), or a path curving out of the horizontal: the cameras' up
             up = cam_up - (cam_up @ main) * main if s[0] > 0 else cam_up
             src = UpSource.CAMERA_UP
     else:
@@ -150,9 +154,13 @@ def _grid(uv: np.ndarray, path_uv: np.ndarray, size_px: int) -> tuple[float, flo
 
 
 def _select(s: Surfels, basis: ViewBasis, path_pos: np.ndarray, min_opacity: float) -> np.ndarray:
+    """Surfels drawn: opaque enough and not above the path's highest point (unless that would
+    leave under 1 % of them: then the up axis is not what the map's layout suggests, keep all)."""
     keep = s.opacity >= min_opacity
     if len(path_pos):
-        keep &= basis.height(s.means) <= basis.height(path_pos).max()
+        below = keep & (basis.height(s.means) <= basis.height(path_pos).max())
+        if below.sum() >= 0.01 * keep.sum():
+            keep = below
     return np.nonzero(keep)[0]
 
 
