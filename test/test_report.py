@@ -251,3 +251,80 @@ def test_foxglove_layout_names_recorded_topics():
     assert sorted(leaves(lay["layout"])) == sorted(lay["configById"])
     named = set(re.findall(r'"(/[a-z_/]+)', json.dumps(lay["configById"])))
     assert named and named <= recorded, named - recorded
+
+
+def test_vings_report_on_a_launch_recording(tmp_path):
+    """A recording shaped like `vings launch --record`'s (raw CDR of the graph's messages through the
+    rosbag2 MCAP writer, as recorder_node writes them) becomes an output folder and a report."""
+    pytest.importorskip("rclpy")
+    from rclpy.serialization import serialize_message
+    from rosbags.rosbag2 import StoragePlugin, Writer
+    from rosbags.typesys import Stores, get_typestore
+
+    from msg_adapters import topics as T
+    from msg_adapters.eraser import mask_to_msg
+    from msg_adapters.image import float_image_to_msg, image_to_msg
+    from msg_adapters.pointcloud import points_to_pointcloud2
+    from msg_adapters.pose import estimate_to_odometry, trajectory_to_path
+    from vings_core.trajectory_io import read_tum
+    from vings_core.types import PoseEstimate, Trajectory
+    from vings_ros.cli import main
+    from vings_ros.recorder import OUTPUT_TOPICS
+
+    rng = np.random.default_rng(0)
+    frame = "camera_optical_frame"
+    msgs = []       # (topic, stamp, message)
+    poses = {}
+    for i in range(30):
+        s = 10_000_000_000 + i * 50_000_000
+        T_wc = np.eye(4)
+        T_wc[:3, 3] = [0.05 * i, 0.01 * np.sin(i), 0.0]
+        poses[s] = T_wc
+        msgs.append((T.ODOMETRY_TOPIC, s, estimate_to_odometry(PoseEstimate(s, T_wc))))
+        if i % 5 == 0:
+            img = (rng.uniform(0, 255, (48, 64, 3))).astype(np.uint8)
+            msgs.append((T.KEYFRAME_IMAGE_TOPIC, s, image_to_msg(img, s, frame)))
+            msgs.append((T.RENDER_COLOR_TOPIC, s, image_to_msg(np.clip(img.astype(int) + 5, 0, 255).astype(np.uint8), s, frame)))
+            msgs.append((T.RENDER_DEPTH_TOPIC, s, float_image_to_msg(rng.uniform(1, 3, (48, 64)).astype(np.float32), s, frame)))
+            msgs.append((T.RENDER_NORMAL_TOPIC, s, image_to_msg(np.full((48, 64, 3), 128, np.uint8), s, frame)))
+            m = np.zeros((48, 64), bool)
+            m[10:20, 10:30] = True
+            msgs.append((T.DYNAMIC_MASK_TOPIC, s, mask_to_msg(m, s)))
+    kf = Trajectory.from_poses({s: T for s, T in poses.items() if (s - 10_000_000_000) // 50_000_000 % 5 == 0})
+    last = int(kf.stamps_ns[-1])
+    msgs.append((T.REFINED_KEYFRAMES_TOPIC, last, trajectory_to_path(kf)))
+    msgs.append((T.MAP_POINTS_TOPIC, last, points_to_pointcloud2(rng.uniform(-1, 1, (500, 3)).astype(np.float32) * [2, 2, 0.2],
+                                                                 rng.integers(0, 255, (500, 3)).astype(np.uint8), last)))
+    types = {t: ty for t, ty, _ in OUTPUT_TOPICS}
+    bag = tmp_path / "rec"
+    ts = get_typestore(Stores.ROS2_JAZZY)
+    with Writer(bag, version=9, storage_plugin=StoragePlugin.MCAP) as w:
+        conns = {t: w.add_connection(t, types[t], typestore=ts) for t in {m[0] for m in msgs}}
+        for t, s, msg in msgs:
+            w.write(conns[t], s, serialize_message(msg))
+    mcap = tmp_path / "run.mcap"
+    (bag / "rec.mcap").rename(mcap)
+    assert main(["report", str(mcap)]) == 0
+    out = tmp_path / "run_report"
+    assert len(read_tum(out / "trajectory.tum")) == 30 and len(read_tum(out / "keyframes.tum")) == 6
+    assert len(list((out / "masks").glob("kf_*.png"))) == 6
+    views = json.loads((out / "views" / "index.json").read_text())["views"]
+    assert len(views) == 6 and all(v["psnr_db"] > 30 for v in views)
+    bev = cv2.imread(str(out / "bev.png"))
+    assert bev is not None and (bev != 255).any()
+    html = (out / "report.html").read_text()
+    assert html.count("<img") >= 6 * 4 + 2
+    # a second conversion never writes over the first
+    assert main(["report", str(mcap)]) == 2
+    assert main(["report", str(tmp_path / "nothing.mcap")]) == 2
+
+
+def test_vings_eval_writes_the_trajectory_plots(run_out, tmp_path):
+    from vings_ros.cli import main
+    out, _ = run_out
+    assert main(["eval", str(out), "--gt", str(out / "ground_truth.tum"), "--plots", str(tmp_path / "p")]) == 0
+    for name in ("trajectory.png", "error.png"):
+        img = cv2.imread(str(tmp_path / "p" / name))
+        assert img is not None and min(img.shape[:2]) >= 200
+    (tmp_path / "f").write_text("x")
+    assert main(["eval", str(out), "--gt", str(out / "ground_truth.tum"), "--plots", str(tmp_path / "f")]) == 2
