@@ -17,6 +17,7 @@ $(STAMP): requirements.txt setup.py setup.cfg
 	$(VPY) -m pip install -q -r requirements.txt
 	$(VPY) -m pip install -q --no-deps --no-build-isolation -e .
 	$(VPY) -m vings_core.warmup
+	$(VPY) -m vings_ros.ament_install
 	rm -f $(VENV)/.installed-*
 	touch $(STAMP)
 

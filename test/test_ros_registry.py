@@ -142,3 +142,24 @@ def test_vings_launch_starts_and_stops_an_extra_registry_node_in_order(tmp_path)
     assert min(started) >= 0 and started == sorted(started, reverse=True), f"consumers start first:\n{err}"
     stopped = [float(f.read_text().splitlines()[-1].split()[0]) for f in logs]
     assert stopped == sorted(stopped), "stopped in the registry order"
+
+
+def test_ament_install_registers_the_package_and_its_node_executables(tmp_path, monkeypatch):
+    import os
+    import subprocess
+
+    from vings_ros.ament_install import install
+    pytest.importorskip("ament_index_python")
+    prefix = tmp_path / "prefix"
+    install(prefix)
+    monkeypatch.setenv("AMENT_PREFIX_PATH", str(prefix))
+    from ament_index_python.packages import get_package_prefix, get_package_share_directory
+    assert Path(get_package_prefix("vings_ros")) == prefix.resolve()
+    assert (Path(get_package_share_directory("vings_ros")) / "package.xml").is_file()
+    for spec in registry.NODES:
+        exe = prefix / "lib" / "vings_ros" / spec.name
+        assert exe.is_file() and os.access(exe, os.X_OK), spec.name
+    # an executable starts its node's code: a bad argument is its one-line usage error
+    r = subprocess.run([str(prefix / "lib" / "vings_ros" / "recorder_node")], capture_output=True, text=True,
+                       timeout=60, env=dict(os.environ, ROS_DOMAIN_ID="231", ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST"))
+    assert r.returncode != 0 and "usage: recorder_node OUT.mcap" in (r.stderr + r.stdout)

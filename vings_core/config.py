@@ -151,9 +151,12 @@ def read_params_file(path: str | os.PathLike, sections: Optional[Iterable[str]] 
         raise ConfigError(f"{path}: params file not found")
     text = read_utf8_text(path, "params file", ConfigError)
     try:
-        doc = ros_yaml_load(text) or {}
+        doc = ros_yaml_load(text)
     except yaml.YAMLError as e:
         raise ConfigError(f"{path}: {describe_yaml_error(e)}") from None
+    if doc is None:     # empty or comments only: most likely the wrong file, never "all defaults"
+        raise ConfigError(f"{path}: the params file is empty (or only comments); give a file with "
+                          f"'/**: {{ros__parameters: ...}}', or no params file for the defaults")
     if not isinstance(doc, dict):
         raise ConfigError(f"{path}: top level must be a mapping of node names")
     merged: dict = {}

@@ -778,6 +778,10 @@ class SlamRunner:
             log.info("%d of %d keyframes trained lightly to keep up (mapping.catch_up_backlog)",
                      self.light_keyframes, len(kf_traj))
         q = self._queue.stats()
+        bad = getattr(self.source, "bad_frames", [])
+        if bad:
+            log.warning("%d frame(s) could not be decoded and were skipped (first: %s)", len(bad), bad[0])
+        m.update(frames_bad=len(bad))
         m.update(frames=n_frames, frames_tracked=len(traj), keyframes=len(kf_traj),
                  num_gaussians=int(self.mapper.num_gaussians), keyframes_light=self.light_keyframes,
                  queue_peak_keyframes=q["queue_peak_keyframes"], queue_spilled=q["queue_spilled"])

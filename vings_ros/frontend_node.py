@@ -212,6 +212,12 @@ class FrontendNode(StageNode):
 
     # ----------------------------------------------------------------------------- the worker
 
+    def _sim_time(self) -> bool:
+        try:
+            return bool(self.get_parameter("use_sim_time").value)
+        except Exception:  # noqa: BLE001 - undeclared in stand-ins: a live clock
+            return False
+
     def step(self) -> None:
         msg = self.queue.get(timeout=0.1)
         if msg is None:
@@ -220,6 +226,13 @@ class FrontendNode(StageNode):
             stamp = header_ns(msg.header, f"{T.IMAGE_TOPIC}.header")
         except InputError as e:
             self._skip(msg, f"skipped an image: {e}")
+            return
+        if stamp < 0 or (stamp == 0 and not self._sim_time()):
+            # no clock gives a negative stamp; 0 on a live topic is a driver that never set it
+            # (a replayed recording whose clock starts at 0, as KITTI's, runs on sim time)
+            self._skip(msg, f"skipped an image stamped {stamp}: "
+                            + ("negative stamp" if stamp < 0 else "zero stamp on a live topic (the driver does not "
+                                                                  "stamp its images; with a recording, use sim time)"))
             return
         if self._last_stamp is not None and stamp <= self._last_stamp:
             # a repeated stamp, a driver stamping 0, or a recording played again from its start:

@@ -170,7 +170,10 @@ class StageNode(Node):
             self.worker.start()
         if self.STATUS_NAME:
             self.pub_diag = self.create_publisher(DiagnosticArray, T.DIAGNOSTICS_TOPIC, T.sensor_qos(10))
-            self.create_timer(self.ros.diagnostics_period_s, self.publish_diagnostics)
+            # on the steady (wall) clock: /diagnostics goes on when /clock stops (a replay ended)
+            from rclpy.clock import Clock, ClockType
+            self.create_timer(self.ros.diagnostics_period_s, self.publish_diagnostics,
+                              clock=Clock(clock_type=ClockType.STEADY_TIME))
         ready = self.ready_message()
         if ready:
             self.get_logger().info(ready)

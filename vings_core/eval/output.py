@@ -64,11 +64,11 @@ METRIC_KEYS = (
     "vi_state", "vi_initialised_at_s", "scale_observable", "acc_bias", "gyro_bias", "td_s",
     "td_estimates", "imu_only_frames", "vi_error",
     "loops_accepted", "loop_candidates_rejected", "loop_detect_ms_mean",
-    "masked_fraction", "eraser_ms_mean", "eraser_error",
+    "masked_fraction", "eraser_ms_mean", "eraser_error", "frames_bad",
 )
 _INT_KEYS = {"frames", "frames_tracked", "keyframes", "num_gaussians", "keyframes_light",
              "queue_peak_keyframes", "queue_spilled", "frames_unposed", "segments", "td_estimates",
-             "imu_only_frames", "loops_accepted", "loop_candidates_rejected"}
+             "imu_only_frames", "loops_accepted", "loop_candidates_rejected", "frames_bad"}
 _STR_KEYS = {"frames_unposed_reason", "vi_state", "vi_error", "eraser_error"}
 _BOOL_KEYS = {"scale_observable"}
 _LIST_KEYS = {"ate_segments_m", "acc_bias", "gyro_bias"}

@@ -517,7 +517,9 @@ class BagSource(LoaderSource):
                 pending[i] = (conn, raw, s)
                 while nxt in pending:
                     c2, raw2, s2 = pending.pop(nxt)
-                    yield self._deliver(self._decode(r, c2, raw2, s2), s2, f"{self.path}:{c2.topic} @ {s2} ns")
+                    fr = self._frame(lambda: self._decode(r, c2, raw2, s2), s2, f"{self.path}:{c2.topic} @ {s2} ns")
+                    if fr is not None:
+                        yield fr
                     nxt += 1
                 if nxt >= n:
                     return

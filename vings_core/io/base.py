@@ -6,6 +6,7 @@ camera model describes them); IMU samples are in the body frame.
 """
 from __future__ import annotations
 
+import enum
 import heapq
 from abc import ABC, abstractmethod
 from dataclasses import dataclass
@@ -18,6 +19,13 @@ from ..errors import InputError
 from ..types import Calibration, Frame, ImuSample, Trajectory
 
 
+class BadFramePolicy(str, enum.Enum):
+    """What reading does with a frame it cannot decode."""
+
+    SKIP = "skip"       # skip it, count it (Source.bad_frames), warn
+    ABORT = "abort"     # stop with an InputError naming the frame
+
+
 @dataclass
 class SourceOptions:
     """How a source delivers frames.
@@ -26,6 +34,9 @@ class SourceOptions:
     the aspect ratio). ``undistort``: remove lens distortion. ``image_topic``/``imu_topic``/
     ``camera_info_topic``: for bags, chosen by name (None = detect). ``calib_file``: YAML calibration
     overriding what the source carries. ``max_frames``: stop after this many frames (None = all).
+    ``on_bad_frame``: a frame that cannot be decoded (corrupt file, wrong size or encoding) is
+    skipped and counted (:class:`BadFramePolicy` ``skip``, the default, as the nodes do) or ends
+    the reading with an :class:`InputError` (``abort``).
     """
 
     width: Optional[int] = None
@@ -37,6 +48,10 @@ class SourceOptions:
     gt_topic: Optional[str] = None
     calib_file: Optional[str] = None
     max_frames: Optional[int] = None
+    on_bad_frame: "BadFramePolicy" = None      # type: ignore[assignment]  (None: BadFramePolicy.SKIP)
+
+    def __post_init__(self) -> None:
+        self.on_bad_frame = BadFramePolicy(self.on_bad_frame or BadFramePolicy.SKIP)
 
 
 class Source(ABC):

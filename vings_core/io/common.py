@@ -9,7 +9,7 @@ import numpy as np
 
 from ..errors import InputError
 from ..types import Calibration, CameraModel, Frame, ImuSample, Trajectory
-from .base import Source, SourceOptions
+from .base import BadFramePolicy, Source, SourceOptions
 from .image_codec import FrameConverter, read_image_file
 from .undistort import Undistorter
 
@@ -19,10 +19,16 @@ log = logging.getLogger("vings.io")
 def order_stamps(stamps: np.ndarray, what: str, warn: Callable[[str], None]) -> np.ndarray:
     """Indices that put ``stamps`` in strictly increasing order.
 
-    Out-of-order entries are sorted (stable) and duplicated stamps dropped (the first one in file
-    order is kept); each repair is reported through ``warn`` naming ``what`` and the count.
+    Negative stamps are refused (dropped: no clock gives them), out-of-order entries are sorted
+    (stable) and duplicated stamps dropped (the first one in file order is kept); each is reported
+    through ``warn`` naming ``what`` and the count.
     """
     stamps = np.asarray(stamps, dtype=np.int64)
+    neg = stamps < 0
+    if neg.any():
+        warn(f"{what}: {int(neg.sum())} negative time stamp(s) refused (dropped)")
+        pos = np.nonzero(~neg)[0]
+        return pos[order_stamps(stamps[pos], what, warn)]
     n = len(stamps)
     if n == 0:
         return np.zeros(0, dtype=np.int64)
@@ -161,6 +167,7 @@ class LoaderSource(Source):
         self.path = Path(path)
         self.kind = kind
         self.options = options or SourceOptions()
+        self.bad_frames: list[str] = []     # frames skipped as undecodable (on_bad_frame skip)
         self.warnings: list[str] = []
         self.ground_truth: Optional[Trajectory] = None
         self.gt_frame = "body"
@@ -215,6 +222,19 @@ class LoaderSource(Source):
             return
         self.ground_truth = Trajectory(np.asarray(stamps)[idx], np.asarray(poses)[idx])
         self.gt_frame = frame
+
+    def _frame(self, decode: Callable[[], np.ndarray], stamp: int, where: str) -> Optional[Frame]:
+        """The frame ``decode()`` gives, delivered (:meth:`_deliver`); one that cannot be decoded
+        or has the wrong size is skipped and counted in :attr:`bad_frames` (None), or, with
+        ``on_bad_frame`` ``abort``, ends the reading (its :class:`InputError`)."""
+        try:
+            return self._deliver(decode(), stamp, where)
+        except InputError as e:
+            if self.options.on_bad_frame is BadFramePolicy.ABORT:
+                raise
+            self.bad_frames.append(str(e))
+            self._warn(f"frame skipped (bad frame {len(self.bad_frames)}): {e}")
+            return None
 
     def _deliver(self, img: np.ndarray, stamp: int, where: str) -> Frame:
         """Convert to uint8, check the size, undistort and resize."""
@@ -292,7 +312,9 @@ class FileFramesSource(LoaderSource):
 
     def frames(self) -> Iterator[Frame]:
         for s, f in zip(self._stamps, self._files):
-            yield self._deliver(read_image_file(f), int(s), str(f))
+            fr = self._frame(lambda f=f: read_image_file(f), int(s), str(f))
+            if fr is not None:
+                yield fr
 
     def frame_files(self) -> list[Path]:
         """The image file of each delivered frame (same order as :meth:`frame_stamps`)."""

@@ -20,6 +20,8 @@ def add_source_arguments(p: argparse.ArgumentParser) -> None:
     g.add_argument("--height", type=image_side, help="working height in pixels (default: native)")
     g.add_argument("--no-undistort", action="store_true", help="keep lens distortion")
     g.add_argument("--max-frames", type=int_at_least(1), help="use at most this many frames")
+    g.add_argument("--on-bad-frame", choices=("skip", "abort"), default="skip",
+                   help="a frame that cannot be decoded: skip and count it (default, as the nodes do) or stop")
 
 
 def source_options(args: argparse.Namespace):
@@ -27,7 +29,8 @@ def source_options(args: argparse.Namespace):
     return SourceOptions(width=args.width, height=args.height, undistort=not args.no_undistort,
                          image_topic=args.image_topic, imu_topic=args.imu_topic,
                          camera_info_topic=args.camera_info_topic, gt_topic=args.gt_topic,
-                         calib_file=args.calib, max_frames=args.max_frames)
+                         calib_file=args.calib, max_frames=args.max_frames,
+                         on_bad_frame=getattr(args, "on_bad_frame", "skip"))
 
 
 def register(subparsers) -> None:
@@ -36,6 +39,8 @@ def register(subparsers) -> None:
                               "rates, resolution, calibration and ground-truth span.")
     p.add_argument("path", help="dataset folder, .bag, .mcap or ROS 2 bag folder")
     p.add_argument("--json", action="store_true", help="print JSON (Source.info()) instead of text")
+    p.add_argument("--check", action="store_true",
+                   help="decode every frame and report those that cannot be decoded (exit 1 if any)")
     add_source_arguments(p)
     p.set_defaults(func=run)
 
@@ -106,8 +111,19 @@ def run(args: argparse.Namespace) -> int:
 
     src = open_source(args.path, source_options(args))
     info = src.info()
+    if args.check:
+        decoded = sum(1 for _ in src.frames())
+        bad = list(getattr(src, "bad_frames", []))
+        info["check"] = {"frames_decoded": decoded, "frames_bad": len(bad), "bad": bad}
     if args.json:
         print(json.dumps(info, indent=2, default=_json_default))
     else:
         print(format_info(info))
-    return 0
+        if args.check:
+            c = info["check"]
+            print(f"  check       : {c['frames_decoded']} frames decoded, {c['frames_bad']} could not be")
+            for b in c["bad"][:20]:
+                print(f"                {b}")
+            if len(c["bad"]) > 20:
+                print(f"                ... and {len(c['bad']) - 20} more")
+    return 1 if args.check and info["check"]["frames_bad"] else 0
