@@ -163,3 +163,29 @@ def test_ament_install_registers_the_package_and_its_node_executables(tmp_path, 
     r = subprocess.run([str(prefix / "lib" / "vings_ros" / "recorder_node")], capture_output=True, text=True,
                        timeout=60, env=dict(os.environ, ROS_DOMAIN_ID="231", ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST"))
     assert r.returncode != 0 and "usage: recorder_node OUT.mcap" in (r.stderr + r.stdout)
+
+
+def test_nodes_stop_when_the_launcher_is_killed(tmp_path):
+    """`kill -9` of the launcher: every node gets SIGTERM from the kernel and exits (no orphans)."""
+    names = ("frontend_node", "mapper_node", "loop_closer_node", "eraser_node")
+    from stand_in_nodes import write_stand_in_nodes
+    logs = write_stand_in_nodes(tmp_path, names)
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(tmp_path), str(REPO)]))
+    child = LAUNCH_CHILD.replace('nodes = (fe, NodeSpec("extra_node", "stand_in_extra_node"), *rest)',
+                                 "nodes = (fe, *rest)")
+    p = subprocess.Popen([sys.executable, "-c", child], env=env, stdout=subprocess.PIPE,
+                         stderr=subprocess.PIPE, text=True, start_new_session=True)
+    t_end = time.monotonic() + 60
+    while not all(f.exists() for f in logs) and time.monotonic() < t_end:
+        time.sleep(0.1)
+    assert all(f.exists() for f in logs), p.stderr.read() if p.poll() is not None else "nodes did not start"
+    time.sleep(0.3)
+    t_kill = time.monotonic()
+    os.kill(p.pid, signal.SIGKILL)
+    p.communicate(timeout=30)
+    while time.monotonic() < t_kill + 10 and not all("got" in f.read_text() for f in logs):
+        time.sleep(0.05)
+    for f in logs:
+        last = f.read_text().splitlines()[-1]
+        assert f"got {int(signal.SIGTERM)}" in last, f"{f.name}: {last}"
+        assert float(last.split()[0]) - t_kill < 5.0

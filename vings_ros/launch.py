@@ -77,6 +77,22 @@ def _ros_value(v) -> str:
     return str(v)
 
 
+def _stop_with_launcher(launcher_pid: int):
+    """``preexec_fn`` of a node process: the kernel sends it SIGTERM when the launcher dies,
+    whatever killed it (Linux ``PR_SET_PDEATHSIG``), so no node is left orphaned; a launcher that
+    died before the node got there is caught by the parent check."""
+    def pre() -> None:
+        try:
+            import ctypes
+            libc = ctypes.CDLL(None, use_errno=True)
+            libc.prctl(1, int(signal.SIGTERM), 0, 0, 0)     # PR_SET_PDEATHSIG
+        except (OSError, AttributeError):
+            return                                          # not Linux: the nodes' own checks remain
+        if os.getppid() != launcher_pid:
+            os.kill(os.getpid(), signal.SIGTERM)
+    return pre
+
+
 class Launcher:
     def __init__(self, opt: LaunchOptions, out: Optional[TextIO] = None) -> None:
         self.opt = opt
@@ -131,12 +147,16 @@ class Launcher:
         print(f"vings launch: {text}", file=self.out, flush=True)
 
     def start(self) -> None:
+        # shared-memory files of processes that died uncleanly earlier (their locks are free)
+        stale = cleanup_fastdds_shm(0.0)
+        if stale:
+            self._say(f"removed {len(stale)} Fast DDS shared-memory files of dead processes")
         self.snapshot = shm_snapshot()
         for name in reversed(self.nodes):
             extra = ([str(Path(self.opt.record).resolve())] if name == RECORDER else
                      [str(Path(self.opt.rerun).resolve())] if name == RERUN else [])
             self.procs[name] = subprocess.Popen(node_command(name, self.opt, extra), env=self.env,
-                                                start_new_session=True)
+                                                start_new_session=True, preexec_fn=_stop_with_launcher(os.getpid()))
             self._say(f"started {name} (pid {self.procs[name].pid})")
 
     def poll(self) -> Optional[str]:
