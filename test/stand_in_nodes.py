@@ -14,7 +14,9 @@ def stop(sig, frame):
     sys.exit(0)
 signal.signal(signal.SIGINT, stop)
 signal.signal(signal.SIGTERM, stop)
-log.write_text(f"{time.monotonic():.6f} started\\n")
+import os
+with log.open("a") as f:
+    f.write(f"{time.monotonic():.6f} started {os.getpid()}\\n")
 while True:
     time.sleep(0.05)
 """

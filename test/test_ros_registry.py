@@ -189,3 +189,58 @@ def test_nodes_stop_when_the_launcher_is_killed(tmp_path):
         last = f.read_text().splitlines()[-1]
         assert f"got {int(signal.SIGTERM)}" in last, f"{f.name}: {last}"
         assert float(last.split()[0]) - t_kill < 5.0
+
+
+RESPAWN_CHILD = """
+import dataclasses, sys
+from vings_ros import launch as L, registry
+registry.NODES = tuple(dataclasses.replace(n, module=f"stand_in_{n.name}") for n in registry.NODES)
+extra = dict(a.split("=", 1) for a in sys.argv[1:])
+print("rc", L.Launcher(L.LaunchOptions(extra_params=extra)).run(), flush=True)
+"""
+
+
+def _pids(log: Path) -> list[int]:
+    return [int(ln.split()[2]) for ln in log.read_text().splitlines() if " started " in ln] if log.exists() else []
+
+
+def _launch_stand_ins(tmp_path, *params):
+    names = ("frontend_node", "mapper_node", "loop_closer_node", "eraser_node")
+    from stand_in_nodes import write_stand_in_nodes
+    logs = dict(zip(names, write_stand_in_nodes(tmp_path, names)))
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(tmp_path), str(REPO)]))
+    p = subprocess.Popen([sys.executable, "-c", RESPAWN_CHILD, *params], env=env, stdout=subprocess.PIPE,
+                         stderr=subprocess.PIPE, text=True, start_new_session=True)
+    t_end = time.monotonic() + 60
+    while not all(_pids(f) for f in logs.values()) and time.monotonic() < t_end:
+        time.sleep(0.1)
+    return p, logs
+
+
+def test_launcher_respawns_a_node_that_dies_and_the_others_keep_working(tmp_path):
+    p, logs = _launch_stand_ins(tmp_path, "mapper_node.respawn_backoff_s=0.2", "mapper_node.respawn_max=1")
+    first = _pids(logs["mapper_node"])[0]
+    others = {n: _pids(f) for n, f in logs.items() if n != "mapper_node"}
+    os.kill(first, signal.SIGKILL)
+    t_end = time.monotonic() + 30
+    while len(_pids(logs["mapper_node"])) < 2 and time.monotonic() < t_end:
+        time.sleep(0.05)
+    assert len(_pids(logs["mapper_node"])) == 2, "the mapper was not respawned"
+    assert {n: _pids(f) for n, f in logs.items() if n != "mapper_node"} == others   # untouched
+    # the second death exhausts respawn_max: the mapper is needed, the graph stops (exit 1)
+    os.kill(_pids(logs["mapper_node"])[1], signal.SIGKILL)
+    out, err = p.communicate(timeout=60)
+    assert "rc 1" in out, err
+    assert "mapper_node exited with code -9; respawning it in 0.2 s (1 of 1)" in err
+    assert "mapper_node exited with code -9 after 1 respawn(s); stopping the graph" in err
+
+
+def test_launcher_exit_policy_continue_and_stop(tmp_path):
+    p, logs = _launch_stand_ins(tmp_path, "eraser_node.on_exit=continue", "loop_closer_node.on_exit=stop")
+    os.kill(_pids(logs["eraser_node"])[0], signal.SIGKILL)
+    time.sleep(1.0)
+    assert p.poll() is None and len(_pids(logs["eraser_node"])) == 1       # left out, not respawned
+    os.kill(_pids(logs["loop_closer_node"])[0], signal.SIGKILL)
+    out, err = p.communicate(timeout=60)
+    assert "rc 1" in out and "eraser_node exited with code -9; the graph goes on without it" in err
+    assert "loop_closer_node exited with code -9; stopping the graph" in err

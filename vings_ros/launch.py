@@ -6,9 +6,12 @@ The nodes are the registry's (vings_ros/registry.py): those with ``launch=ALWAYS
 of the registry order (mapper first: it may resume from a checkpoint; then the front end) and stop
 in the registry order on Ctrl-C / SIGTERM / SIGHUP: the front end first (it flushes its last
 keyframes), then the mapper (it finishes its queue and writes its checkpoint), then the recorder
-(it closes the MCAP). A node that exits on its own is reported and the rest of the graph is
-stopped (exit code 1). Fast DDS shared-memory files left by the graph's processes are removed at
-the end.
+(it closes the MCAP). A node that exits on its own is handled by its exit policy (its settings'
+``on_exit``, :class:`~vings_ros.node_config.ExitPolicy`): respawned after a back-off (the default;
+it resumes from its checkpoint; at most ``respawn_max`` times), left out (the graph goes on), or
+the graph is stopped (exit code 1). Every node gets SIGTERM from the kernel if the launcher dies,
+whatever killed it. Fast DDS shared-memory files of dead processes are removed at the start and
+those left by the graph's processes at the end.
 """
 from __future__ import annotations
 
@@ -27,6 +30,7 @@ from vings_core.util import check_output_file
 
 from . import registry
 from .node_common import check_parameters, section_classes, section_config
+from .node_config import ExitPolicy
 from .ros_env import cleanup_fastdds_shm, ros_environment, shm_snapshot
 
 #: the node ``--record`` starts (its one argument: the output file)
@@ -118,14 +122,23 @@ class Launcher:
                                     {k: _ros_value(v) for k, v in opt.extra_params.items()}, "vings launch")
         classes = section_classes()
         self.stop_timeout: dict[str, float] = {}
+        #: per node: (exit policy, restarts at most, first back-off s); nodes without settings:
+        #: an optional one is left out when it exits, another stops the graph
+        self.exit_policy: dict[str, tuple[ExitPolicy, int, float]] = {}
         for spec in registry.NODES:
             timeout = spec.stop_timeout_s
+            policy = (ExitPolicy.CONTINUE if spec.optional else ExitPolicy.STOP, 0, 0.0)
             if spec.config:
                 cfg = section_config(classes[spec.name], spec.name, sections[spec.name], "vings launch")
                 work = getattr(cfg, "shutdown_timeout_s", None)
                 if work is not None:
                     timeout = max(timeout, work + SAVE_MARGIN_S)
+                if hasattr(cfg, "on_exit"):
+                    policy = (ExitPolicy(cfg.on_exit), int(cfg.respawn_max), float(cfg.respawn_backoff_s))
             self.stop_timeout[spec.name] = timeout
+            self.exit_policy[spec.name] = policy
+        self.respawns: dict[str, int] = {}
+        self._restart_at: dict[str, float] = {}
         if opt.record and not str(opt.record).endswith(".mcap"):
             raise ConfigError(f"--record {opt.record}: the output must be a .mcap file")
         if opt.record:      # before any node starts, not when the recorder dies
@@ -146,6 +159,46 @@ class Launcher:
     def _say(self, text: str) -> None:
         print(f"vings launch: {text}", file=self.out, flush=True)
 
+    def _spawn(self, name: str) -> None:
+        extra = ([str(Path(self.opt.record).resolve())] if name == RECORDER else
+                 [str(Path(self.opt.rerun).resolve())] if name == RERUN else [])
+        self.procs[name] = subprocess.Popen(node_command(name, self.opt, extra), env=self.env,
+                                            start_new_session=True, preexec_fn=_stop_with_launcher(os.getpid()))
+
+    def _node_exited(self, dead: str) -> Optional[int]:
+        """Apply ``dead``'s exit policy; returns the launcher's exit code when the graph must stop."""
+        rc = self.procs[dead].returncode
+        policy, most, backoff = self.exit_policy.get(dead, (ExitPolicy.STOP, 0, 0.0))
+        optional = registry.node_spec(dead).optional
+        k = self.respawns.get(dead, 0)
+        if policy is ExitPolicy.RESPAWN and k < most:
+            wait = backoff * 2 ** k
+            self._restart_at[dead] = time.monotonic() + wait
+            self._gone.add(dead)
+            self._say(f"{dead} exited with code {rc}; respawning it in {wait:.1f} s ({k + 1} of {most}); "
+                      f"the other nodes keep working")
+            return None
+        if policy is ExitPolicy.CONTINUE or (policy is ExitPolicy.RESPAWN and optional):
+            self._gone.add(dead)
+            more = f" after {k} respawn(s)" if k else ""
+            self._say(f"{dead} exited with code {rc}{more}; the graph goes on without it")
+            return None
+        more = f" after {k} respawn(s)" if k else ""
+        self._say(f"{dead} exited with code {rc}{more}; stopping the graph")
+        if dead == RECORDER:
+            self._report_stranded_recording()
+        return 1
+
+    def _respawn_due(self) -> None:
+        now = time.monotonic()
+        for name, at in list(self._restart_at.items()):
+            if now >= at:
+                del self._restart_at[name]
+                self.respawns[name] = self.respawns.get(name, 0) + 1
+                self._spawn(name)
+                self._gone.discard(name)
+                self._say(f"respawned {name} (pid {self.procs[name].pid})")
+
     def start(self) -> None:
         # shared-memory files of processes that died uncleanly earlier (their locks are free)
         stale = cleanup_fastdds_shm(0.0)
@@ -153,10 +206,7 @@ class Launcher:
             self._say(f"removed {len(stale)} Fast DDS shared-memory files of dead processes")
         self.snapshot = shm_snapshot()
         for name in reversed(self.nodes):
-            extra = ([str(Path(self.opt.record).resolve())] if name == RECORDER else
-                     [str(Path(self.opt.rerun).resolve())] if name == RERUN else [])
-            self.procs[name] = subprocess.Popen(node_command(name, self.opt, extra), env=self.env,
-                                                start_new_session=True, preexec_fn=_stop_with_launcher(os.getpid()))
+            self._spawn(name)
             self._say(f"started {name} (pid {self.procs[name].pid})")
 
     def poll(self) -> Optional[str]:
@@ -211,17 +261,13 @@ class Launcher:
             self.start()
             while not stop_requested:
                 dead = self.poll()
-                if dead is not None and any(n.name == dead and n.optional for n in registry.NODES):
-                    self._gone.add(dead)
-                    self._say(f"{dead} exited with code {self.procs[dead].returncode}; the graph goes on without it")
-                    continue
                 if dead is not None:
-                    rc = self.procs[dead].returncode
-                    self._say(f"{dead} exited with code {rc}; stopping the graph")
-                    if dead == RECORDER:
-                        self._report_stranded_recording()
-                    code = 1
-                    break
+                    rc = self._node_exited(dead)
+                    if rc is not None:
+                        code = rc
+                        break
+                    continue
+                self._respawn_due()
                 time.sleep(0.2)
             if stop_requested:
                 self._say("shutting down")

@@ -21,6 +21,32 @@ class QueuePolicy(str, enum.Enum):
     BACKPRESSURE = "backpressure"
 
 
+class ExitPolicy(str, enum.Enum):
+    """What ``vings launch`` does when a node exits by itself (crash, kill, error)."""
+
+    RESPAWN = "respawn"     # start it again after a back-off; the other nodes keep working
+    STOP = "stop"           # stop the whole graph
+    CONTINUE = "continue"   # report it; the graph goes on without it
+
+
+@dataclass
+class RespawnSettings:
+    """How ``vings launch`` treats the node's exit (:class:`ExitPolicy`): ``on_exit``;
+    ``respawn_max``: restarts at most (then a node the graph needs stops it, an optional one is left
+    out); ``respawn_backoff_s``: wait before the first restart, doubled for each further one. A
+    respawned node resumes from its checkpoint when it has one (``checkpoint_path``)."""
+
+    on_exit: ExitPolicy = ExitPolicy.RESPAWN
+    respawn_max: int = 3
+    respawn_backoff_s: float = 1.0
+
+    def validate(self) -> None:
+        if self.respawn_max < 0:
+            raise ValueError(f"respawn_max must be >= 0, got {self.respawn_max}")
+        if not self.respawn_backoff_s >= 0:
+            raise ValueError(f"respawn_backoff_s must be >= 0, got {self.respawn_backoff_s}")
+
+
 def _check_frame(name: str, value: str) -> None:
     if not value.strip() or value.startswith("/"):
         raise ValueError(f"{name} must be a frame id without a leading '/', got {value!r}")
@@ -43,7 +69,7 @@ class RosConfig:
 
 
 @dataclass
-class FrontendNodeConfig:
+class FrontendNodeConfig(RespawnSettings):
     """``frontend_node`` settings (params section ``frontend_node``).
 
     ``queue_policy`` / ``queue_size``: the image queue (:class:`QueuePolicy`; ``keep_newest`` holds
@@ -61,6 +87,7 @@ class FrontendNodeConfig:
     path_max_poses: int = 10000
 
     def validate(self) -> None:
+        super().validate()
         if self.queue_size < 1:
             raise ValueError("queue_size must be >= 1")
         if self.width < 0 or self.height < 0:
@@ -85,12 +112,15 @@ class CheckpointSettings:
     checkpoint_period_s: float = 30.0
 
     def validate(self) -> None:
+        validate = getattr(super(), "validate", None)   # a settings mixin after this one in the MRO
+        if validate is not None:
+            validate()
         if self.checkpoint_period_s < 0:
             raise ValueError("checkpoint_period_s must be >= 0")
 
 
 @dataclass
-class MapperNodeConfig(CheckpointSettings):
+class MapperNodeConfig(CheckpointSettings, RespawnSettings):
     """``mapper_node`` settings (params section ``mapper_node``), besides the checkpoint ones
     (:class:`CheckpointSettings`).
 
@@ -135,7 +165,7 @@ class MapperNodeConfig(CheckpointSettings):
 
 
 @dataclass
-class LoopCloserNodeConfig(CheckpointSettings):
+class LoopCloserNodeConfig(CheckpointSettings, RespawnSettings):
     """``loop_closer_node`` settings (params section ``loop_closer_node``), besides the checkpoint
     ones (:class:`CheckpointSettings`: the keyframe database, accepted loops, records and the
     exchange state, written atomically; resumed at start).
@@ -169,7 +199,7 @@ class LoopCloserNodeConfig(CheckpointSettings):
 
 
 @dataclass
-class EraserNodeConfig:
+class EraserNodeConfig(RespawnSettings):
     """``eraser_node`` settings (params section ``eraser_node``); the eraser's own settings are the
     library section ``eraser`` (``eraser.mask_timeout_s``: how long the mapper waits for a mask).
 
@@ -187,6 +217,7 @@ class EraserNodeConfig:
     nice: int = 10
 
     def validate(self) -> None:
+        super().validate()
         if not self.render_timeout_s > 0:
             raise ValueError(f"render_timeout_s must be > 0, got {self.render_timeout_s}")
         if self.queue_memory_keyframes < 1:
