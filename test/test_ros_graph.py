@@ -22,7 +22,8 @@ pytestmark = pytest.mark.ros
 
 REPO = Path(__file__).resolve().parents[1]
 FAST_PARAMS = ["mapping.iters_per_keyframe=5", "mapping.points_per_keyframe=3000", "mapping.refine_iters=2",
-               "mapper_node.checkpoint_period_s=0.0", "mapper_node.shutdown_timeout_s=20.0"]
+               "mapper_node.checkpoint_period_s=0.0", "mapper_node.shutdown_timeout_s=20.0",
+               "mapper_node.on_stop=train"]
 
 
 def _domain() -> int:

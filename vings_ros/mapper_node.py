@@ -57,7 +57,7 @@ from vings_core.types import Keyframe, Trajectory
 from . import registry
 from .node_base import BatchInbox, Level, NodeStatus, StageNode
 from .node_common import RateMeter, lower_priority, worth_reporting
-from .node_config import MapperNodeConfig, QueuePolicy
+from .node_config import MapperNodeConfig, QueuePolicy, StopPolicy
 
 #: training iterations between two checks for shutdown / a due checkpoint / render requests
 TRAIN_CHUNK = 5
@@ -91,6 +91,7 @@ class MapperNode(StageNode):
         # keyframes are never dropped: FIFO whatever the input policy, bounded in memory, the rest on disk
         self.queue = self._keyframe_queue()
         self._abort = threading.Event()     # shutdown: stop training early
+        self._stored = threading.Event()    # shutdown with on_stop store: take no more keyframes
         self._busy = False
         self.rate = RateMeter(30.0)
         self._last_points = 0.0
@@ -206,6 +207,9 @@ class MapperNode(StageNode):
     # ----------------------------------------------------------------------------- the worker
 
     def step(self) -> None:
+        if self._stored.is_set():       # stopping: what is queued stays queued (stored)
+            time.sleep(0.05)
+            return
         msg = self.queue.get(timeout=0.1)
         kf: Optional[Keyframe] = None if msg is None else msg[1]
         self._exchange_receive()
@@ -482,7 +486,22 @@ class MapperNode(StageNode):
         """Finish the keyframes already received (up to ``shutdown_timeout_s``), then make the
         current training stop early; the final checkpoint follows once the worker has ended, so
         it never races with training."""
+        n = self.queue.keyframes
+        if self.settings.on_stop is StopPolicy.STORE and self.queue.keeps_files:
+            self._stored.set()
+            self._abort.set()           # the keyframe in training ends at its next chunk
+            deadline = time.monotonic() + STOP_WAIT_S
+            while self._busy and self.worker.thread.is_alive() and time.monotonic() < deadline:
+                time.sleep(0.02)
+            self.get_logger().info(f"stopping: {self.queue.keyframes} keyframe(s) not mapped yet are stored in "
+                                   f"{self.queue.spill_dir} with the checkpoint; the mapper maps them when it "
+                                   f"resumes")
+            return
         timeout = self.settings.shutdown_timeout_s
+        if n or self._busy:
+            self.get_logger().info(f"stopping: mapping the {n} queued keyframe(s) first (at most {timeout:.0f} s"
+                                   + ("" if self.queue.keeps_files else "; no checkpoint_path to store them")
+                                   + ")")
         deadline = time.monotonic() + timeout
         while (self.queue.keyframes or self._busy) and self.error is None and \
                 self.worker.thread.is_alive() and time.monotonic() < deadline:
@@ -510,6 +529,10 @@ class MapperNode(StageNode):
         else:
             self.queue.close()
         self.mapper.close()
+
+
+#: with on_stop store: how long the stop waits for the keyframe in training to reach its next chunk
+STOP_WAIT_S = 8.0
 
 
 def main(args: Optional[list[str]] = None) -> int:

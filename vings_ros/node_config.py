@@ -29,6 +29,14 @@ class ExitPolicy(str, enum.Enum):
     CONTINUE = "continue"   # report it; the graph goes on without it
 
 
+class StopPolicy(str, enum.Enum):
+    """What the mapper does with keyframes it received but has not mapped when it is stopped."""
+
+    STORE = "store"     # store them with the checkpoint (its queue folder) and stop within seconds;
+                        # the mapper maps them when it resumes (needs checkpoint_path, else TRAIN)
+    TRAIN = "train"     # map them first, for at most shutdown_timeout_s
+
+
 @dataclass
 class RespawnSettings:
     """How ``vings launch`` treats the node's exit (:class:`ExitPolicy`): ``on_exit``;
@@ -125,8 +133,12 @@ class MapperNodeConfig(CheckpointSettings, RespawnSettings):
     (:class:`CheckpointSettings`).
 
     The mapper also checkpoints after its first keyframe and every ``checkpoint_every_keyframes``
-    keyframes (0 = off). ``shutdown_timeout_s``: how long it may work through queued keyframes
-    after SIGINT. ``nice``: niceness the mapper process adds to itself, so tracking wins the CPU
+    keyframes (0 = off). ``on_stop`` (:class:`StopPolicy`): on a stop, keyframes not mapped yet
+    are stored with the checkpoint and mapped when the node resumes (``store``, the default: the
+    stop takes seconds; without ``checkpoint_path`` there is nowhere to keep them and the mapper
+    trains them instead), or trained first (``train``). ``shutdown_timeout_s``: how long it may work
+    through queued keyframes after SIGINT with ``train`` (the rest then waits on disk when a
+    checkpoint is set, else is lost and said so). ``nice``: niceness the mapper process adds to itself, so tracking wins the CPU
     (0 = off); ``threads``: torch / numba threads (0 = library default). ``points_period_s``:
     throttle of /vings/map/points, ``max_points`` its size. ``render_every_keyframes``: publish
     renders after every n-th keyframe (0 = never). ``queue_memory_keyframes``: received keyframes
@@ -136,6 +148,7 @@ class MapperNodeConfig(CheckpointSettings, RespawnSettings):
     that resumes maps what waited there), else a private temporary folder."""
 
     checkpoint_every_keyframes: int = 5
+    on_stop: StopPolicy = StopPolicy.STORE
     shutdown_timeout_s: float = 120.0
     nice: int = 10
     threads: int = 0
