@@ -42,6 +42,8 @@ log = logging.getLogger("vings.ros_env")
 SHM_DIR = Path("/dev/shm")
 PROFILE_ENV = "FASTRTPS_DEFAULT_PROFILES_FILE"
 TRANSPORT_ENV = "VINGS_DDS"
+#: ROS 2 Jazzy's discovery range; ros_environment() sets LOCALHOST unless the user set it
+DISCOVERY_RANGE_ENV = "ROS_AUTOMATIC_DISCOVERY_RANGE"
 TRANSPORTS = ("shm", "udp")
 SEGMENT_BYTES = 64 * 2 ** 20                  # keep equal to segment_size in fastdds_shm.xml
 MIN_SHM_FREE = 4 * (SEGMENT_BYTES + 2 ** 22)  # a few processes' segments must fit in /dev/shm
@@ -93,7 +95,9 @@ def ros_environment(domain_id: Optional[int] = None, use_shm: Optional[bool] = N
                     log_dir: Optional[Union[str, os.PathLike]] = None,
                     base: Optional[Mapping[str, str]] = None) -> dict:
     """Environment (a new dict: ``base`` or ``os.environ`` plus the ROS settings) for a VINGS ROS
-    process. ``use_shm=None`` follows ``VINGS_DDS`` (default shared memory)."""
+    process. ``use_shm=None`` follows ``VINGS_DDS`` (default shared memory). Discovery stays on
+    this host (``ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST``) unless the variable is set already
+    (``SUBNET``: nodes on separate hosts)."""
     env = dict(os.environ if base is None else base)
     ours = str(shm_profile_path())
     if use_shm is None:
@@ -119,6 +123,9 @@ def ros_environment(domain_id: Optional[int] = None, use_shm: Optional[bool] = N
         if not (v.isdigit() and 0 <= int(v) <= 232):
             raise ConfigError(f"environment variable ROS_DOMAIN_ID={env['ROS_DOMAIN_ID']!r} is not an "
                               f"integer in 0..232 (unset it or give --domain-id)")
+    if not env.get(DISCOVERY_RANGE_ENV, "").strip():
+        # the graph stays on this host unless asked (docs/ros.md "Hosts apart": SUBNET)
+        env[DISCOVERY_RANGE_ENV] = "LOCALHOST"
     if log_dir is not None:
         env["ROS_LOG_DIR"] = str(log_dir)
     elif not env.get("ROS_LOG_DIR"):
