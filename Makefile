@@ -26,7 +26,7 @@ install: $(STAMP)
 demo: $(STAMP)
 	$(VENV)/bin/vings sim --scene room --frames 80 --out $(DEMO_OUT)/room
 	$(VENV)/bin/vings run $(DEMO_OUT)/room --out $(DEMO_OUT)/run
-	@echo "demo outputs: $(DEMO_OUT)/run (trajectory.tum, keyframes.tum, map.ply, checkpoint.pt, metrics.json, renders/)"
+	@echo "demo outputs: $(DEMO_OUT)/run (report.html: open it in a browser; trajectory.tum, keyframes.tum, map.ply, checkpoint.pt, metrics.json, renders/)"
 
 VIZ_STAMP := $(VENV)/.viz-$(shell cat requirements-viz.txt | cksum | cut -d' ' -f1)
 
