@@ -174,17 +174,42 @@ def _pixels(s: Surfels, idx: np.ndarray, basis: ViewBasis, x0: float, y1: float,
     return col, row, r
 
 
-def splat_bev(s: Surfels, T_wc: np.ndarray, gravity_aligned: bool, metric: bool = False,
-              size_px: int = 1024, max_radius_px: int = 3, min_opacity: float = 0.3,
-              chunk: int = 1 << 20) -> BevImage:
-    """The map from above (see the module doc), vectorised: each surfel's disc as integer pixel
-    offsets within its radius, one z-buffer pass (sort by pixel, then height) per chunk."""
+@dataclass
+class _Layout:
+    """What the kernel and its reference share: the view, the surfels drawn (``idx``), the image
+    frame and each drawn surfel's centre pixel, disc radius and height."""
+
+    basis: ViewBasis
+    idx: np.ndarray
+    x0: float
+    y1: float
+    px: float
+    W: int
+    H: int
+    col: np.ndarray
+    row: np.ndarray
+    r: np.ndarray
+    h: np.ndarray
+
+
+def _layout(s: Surfels, T_wc: np.ndarray, gravity_aligned: bool, size_px: int, max_radius_px: int,
+            min_opacity: float) -> _Layout:
     basis = view_basis(T_wc, gravity_aligned)
     path = np.asarray(T_wc, np.float64).reshape(-1, 4, 4)[:, :3, 3]
     idx = _select(s, basis, path, min_opacity)
     x0, y1, px, W, H = _grid(basis.plane(s.means[idx]), basis.plane(path), size_px)
     col, row, r = _pixels(s, idx, basis, x0, y1, px, max_radius_px)
-    h = basis.height(s.means[idx])
+    return _Layout(basis, idx, x0, y1, px, W, H, col, row, r, basis.height(s.means[idx]))
+
+
+def splat_bev(s: Surfels, T_wc: np.ndarray, gravity_aligned: bool, metric: bool = False,
+              size_px: int = 1024, max_radius_px: int = 3, min_opacity: float = 0.3,
+              chunk: int = 1 << 20) -> BevImage:
+    """The map from above (see the module doc), vectorised: each surfel's disc as integer pixel
+    offsets within its radius, one z-buffer pass (sort by pixel, then height) per chunk."""
+    v = _layout(s, T_wc, gravity_aligned, size_px, max_radius_px, min_opacity)
+    basis, idx, x0, y1, px, W, H, col, row, r, h = (v.basis, v.idx, v.x0, v.y1, v.px, v.W, v.H, v.col, v.row,
+                                                    v.r, v.h)
     best_h = np.full(H * W, -np.inf)
     best_i = np.full(H * W, -1, np.int64)
     for k in range(max_radius_px + 1):
@@ -221,12 +246,8 @@ def splat_bev_reference(s: Surfels, T_wc: np.ndarray, gravity_aligned: bool, siz
                         max_radius_px: int = 3, min_opacity: float = 0.3) -> np.ndarray:
     """Slow reference of :func:`splat_bev` (no scale bar): every surfel, every pixel of its disc,
     kept when higher than what the pixel holds (equal heights: the later surfel)."""
-    basis = view_basis(T_wc, gravity_aligned)
-    path = np.asarray(T_wc, np.float64).reshape(-1, 4, 4)[:, :3, 3]
-    idx = _select(s, basis, path, min_opacity)
-    x0, y1, px, W, H = _grid(basis.plane(s.means[idx]), basis.plane(path), size_px)
-    col, row, r = _pixels(s, idx, basis, x0, y1, px, max_radius_px)
-    h = basis.height(s.means[idx])
+    v = _layout(s, T_wc, gravity_aligned, size_px, max_radius_px, min_opacity)
+    idx, W, H, col, row, r, h = v.idx, v.W, v.H, v.col, v.row, v.r, v.h
     img = np.tile(BACKGROUND, (H, W, 1))
     zbuf = np.full((H, W), -np.inf)
     for j in range(len(idx)):
