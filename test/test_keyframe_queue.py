@@ -171,3 +171,32 @@ def test_nice_current_thread_lowers_only_the_calling_thread():
     t.start()
     t.join()
     assert seen["delta"] == min(3, 19 - main) and os.getpriority(os.PRIO_PROCESS, 0) == main
+
+
+def test_unacked_keyframes_hold_until_the_mapper_lists_them(tmp_path):
+    import numpy as np
+    import torch
+
+    from vings_core.keyframe_queue import UnackedKeyframes
+    from vings_core.types import CameraModel, Keyframe
+    cam = CameraModel(8, 6, 5.0, 5.0, 3.5, 2.5)
+
+    def kf(i):
+        return Keyframe(stamp_ns=(i + 1) * 10, image=torch.rand(6, 8, 3), T_wc=torch.eye(4, dtype=torch.float64),
+                        depth=torch.ones(6, 8), inv_depth_var=torch.ones(6, 8), valid=torch.ones(6, 8, dtype=torch.bool),
+                        camera=cam, index=i)
+    u = UnackedKeyframes(memory_keyframes=2, spill_dir=tmp_path / "spill")
+    for i in range(5):
+        u.sent(kf(i), now=float(i))
+    u.sent(kf(0), now=9.0)                          # a re-send is held once
+    assert len(u) == 5 and len(list((tmp_path / "spill").glob("kf-*.pt"))) == 3   # 2 in memory, 3 on disk
+    assert u.acknowledged([20]) == 0                # out of order: kept until 10 is acknowledged
+    assert u.acknowledged([10]) == 2 and len(u) == 3
+    pend = u.pending()
+    assert [int(k.stamp_ns) for k in pend] == [30, 40, 50] and len(u) == 3     # still held
+    assert np.allclose(pend[0].image.numpy(), pend[0].image.numpy())
+    assert u.overdue(now=10.0, timeout_s=5.0) and not u.overdue(now=3.5, timeout_s=5.0)
+    u.restamp(20.0)
+    assert not u.overdue(now=21.0, timeout_s=5.0)
+    assert u.acknowledged([10, 20, 30, 40, 50]) == 3 and len(u) == 0 and u.released == 5
+    u.close()

@@ -327,3 +327,66 @@ class KeyframeQueue:
             self.peak_keyframes = max(self.peak_keyframes, self._keyframes)
             self._cv.notify_all()
         return len(found)
+
+
+class UnackedKeyframes:
+    """Keyframes the front end sent to the mapper and the mapper has not acknowledged yet (the
+    mapper acknowledges a keyframe by listing its stamp among its keyframes: the refined
+    keyframes path), oldest first, bounded in memory (later ones on disk: a
+    :class:`KeyframeQueue`), so that a mapper that was down can be given them again.
+
+    ``sent(kf)``: one more; ``acknowledged(stamps)``: the mapper holds these (returns how many
+    were released); ``pending()``: the unacknowledged keyframes, oldest first (they stay held);
+    ``overdue(now, timeout_s)``: whether the oldest waited longer than ``timeout_s``. Stamps are
+    released in the order they were sent (the mapper maps in that order); a stamp acknowledged
+    out of order is remembered until the older ones are released. One thread."""
+
+    def __init__(self, memory_keyframes: int = 8, spill_dir: Optional[str | os.PathLike] = None) -> None:
+        self._q = KeyframeQueue(memory_keyframes, spill_dir)
+        self._order: collections.deque = collections.deque()     # (stamp, time sent)
+        self._acked: set[int] = set()
+        self.released = 0
+
+    def __len__(self) -> int:
+        return len(self._order)
+
+    def sent(self, kf: Keyframe, now: float) -> None:
+        s = int(kf.stamp_ns)
+        if s in self._acked or any(s == o for o, _ in self._order):
+            return                      # sent again (a re-send): held once
+        self._q.put("kf", kf)
+        self._order.append((s, float(now)))
+
+    def acknowledged(self, stamps) -> int:
+        self._acked.update(int(s) for s in stamps)
+        n = 0
+        while self._order and self._order[0][0] in self._acked:
+            self._q.get(0)
+            self._order.popleft()
+            n += 1
+        oldest = self._order[0][0] if self._order else None
+        # acknowledgements older than what is still held can no longer matter
+        self._acked = {s for s in self._acked if oldest is not None and s > oldest}
+        self.released += n
+        return n
+
+    def pending(self) -> list[Keyframe]:
+        kfs = []
+        for _ in range(len(self._order)):
+            msg = self._q.get(0)
+            if msg is None:
+                break
+            kfs.append(msg[1])
+        for kf in kfs:                  # back in, in the same order
+            self._q.put("kf", kf)
+        return kfs
+
+    def overdue(self, now: float, timeout_s: float) -> bool:
+        return bool(self._order) and now - self._order[0][1] > timeout_s
+
+    def restamp(self, now: float) -> None:
+        """Count the waiting time of what is held from ``now`` (after a re-send)."""
+        self._order = collections.deque((s, float(now)) for s, _ in self._order)
+
+    def close(self) -> None:
+        self._q.close()

@@ -26,13 +26,14 @@ from msg_adapters.image import FrameDecoder
 from msg_adapters.imu import msg_to_imu_sample
 from msg_adapters.keyframe import PART_TOPICS, keyframe_to_msgs
 from msg_adapters.exchange import batch_to_path, exchange_topic
-from msg_adapters.pose import estimate_to_odometry, trajectory_to_path
+from msg_adapters.pose import estimate_to_odometry, path_to_trajectory, trajectory_to_path
 from msg_adapters.stamps import header_ns
 from vings_core.errors import InputError
 from vings_core.frontend import Frontend, FrontendConfig
 from vings_core.frontend.flow import make_flow_estimator
 from vings_core.io.calib_yaml import is_rectified_topic, load_calibration_yaml
 from vings_core.io.undistort import Undistorter
+from vings_core.keyframe_queue import UnackedKeyframes
 from vings_core.exchange import ExchangeConfig, PoseKeeper
 from vings_core.exchange.config import KEEPER
 from vings_core.types import POSED_STATES, Calibration, CameraModel, Frame, TrackState
@@ -110,6 +111,14 @@ class FrontendNode(StageNode):
                                         ("pose", PoseStamped), ("camera_info", CameraInfo))}
         self.pub_ack = self.create_publisher(Header, T.PROCESSED_TOPIC, sq(T.ACK_DEPTH))
         self._last_path_pub = 0.0
+        # keyframes until the mapper lists them (sent again to a mapper that missed them)
+        self.unacked = UnackedKeyframes(self.settings.unacked_memory_keyframes)
+        self._unacked_lock = threading.Lock()
+        self.keyframes_resent = 0
+        self._mapper_up = False
+        self._next_ack_check = 0.0
+        self.sub_refined = self.create_subscription(Path, T.REFINED_KEYFRAMES_TOPIC, self._on_refined,
+                                                    T.latched_qos(1))
 
     def ready_message(self) -> str:
         return (f"front end ready (queue policy {self.settings.queue_policy.value}); waiting for "
@@ -119,6 +128,36 @@ class FrontendNode(StageNode):
 
     def _on_image(self, msg: Image) -> None:
         self.queue.put(msg)
+
+    def _on_refined(self, msg: Path) -> None:
+        """The mapper's keyframes: every stamp listed is acknowledged."""
+        try:
+            stamps = path_to_trajectory(msg, T.REFINED_KEYFRAMES_TOPIC).stamps_ns.tolist()
+        except InputError as e:
+            self.get_logger().warning(f"{T.REFINED_KEYFRAMES_TOPIC}: ignored ({e})", throttle_duration_sec=10.0)
+            return
+        with self._unacked_lock:
+            self.unacked.acknowledged(stamps)
+
+    def _resend_unacked(self) -> None:
+        """Send again the keyframes the mapper has not acknowledged, when a mapper (re)appeared or
+        the oldest waited ``resend_after_s`` (worker thread, at most once a second)."""
+        now = time.monotonic()
+        if self.settings.resend_after_s <= 0 or now < self._next_ack_check:
+            return
+        self._next_ack_check = now + 1.0
+        up = self.count_publishers(T.REFINED_KEYFRAMES_TOPIC) > 0
+        appeared, self._mapper_up = up and not self._mapper_up, up
+        with self._unacked_lock:
+            if not len(self.unacked) or not up or not (appeared or self.unacked.overdue(now, self.settings.resend_after_s)):
+                return
+            kfs = self.unacked.pending()
+            self.unacked.restamp(now)
+        for kf in kfs:
+            self._publish_parts(kf)
+        self.keyframes_resent += len(kfs)
+        self.get_logger().info(f"sent {len(kfs)} keyframe(s) again that the mapper had not acknowledged"
+                               + (" (a mapper appeared)" if appeared else f" within {self.settings.resend_after_s:g} s"))
 
     def _on_camera_info(self, msg: CameraInfo) -> None:
         if self.settings.calib_file:
@@ -219,6 +258,7 @@ class FrontendNode(StageNode):
             return False
 
     def step(self) -> None:
+        self._resend_unacked()
         msg = self.queue.get(timeout=0.1)
         if msg is None:
             return
@@ -303,12 +343,18 @@ class FrontendNode(StageNode):
     def _ack(self, header: Header) -> None:
         self.pub_ack.publish(header)
 
+    def _publish_parts(self, kf) -> None:
+        msgs = keyframe_to_msgs(kf, self.ros.camera_frame, self.ros.world_frame)
+        for part, m in msgs.as_dict().items():
+            self.pub_kf[part].publish(m)
+
     def _publish_keyframes(self, kfs) -> None:
         for kf in kfs:
-            msgs = keyframe_to_msgs(kf, self.ros.camera_frame, self.ros.world_frame)
-            for part, m in msgs.as_dict().items():
-                self.pub_kf[part].publish(m)
+            self._publish_parts(kf)
             self._exchange_keyframe_sent(kf)
+            if self.settings.resend_after_s > 0:
+                with self._unacked_lock:
+                    self.unacked.sent(kf, time.monotonic())
 
     def _publish_path(self) -> None:
         traj = self.frontend.trajectory(states=POSED_STATES, max_poses=self.settings.path_max_poses)
@@ -333,6 +379,7 @@ class FrontendNode(StageNode):
                   "dynamic_masks_applied": self.frontend.stats.get("dynamic_masks", 0) if self.frontend else 0,
                   "dynamic_masks_late": self.frontend.stats.get("dynamic_masks_late", 0) if self.frontend else 0,
                   "bad_dynamic_masks": self.bad_masks,
+                  "keyframes_unacknowledged": len(self.unacked), "keyframes_resent": self.keyframes_resent,
                   **self._vi_values(st),
                   **self._exchange_values()}
         if st.get("vi_error"):
@@ -401,6 +448,12 @@ class FrontendNode(StageNode):
             self._publish_keyframes(kfs)
             self._publish_path()
             time.sleep(0.2)  # let reliable writers hand the last packets over
+
+    def close(self) -> None:
+        with self._unacked_lock:
+            if len(self.unacked):
+                self.get_logger().info(f"{len(self.unacked)} keyframe(s) sent were not acknowledged by a mapper")
+            self.unacked.close()
 
 
 def main(args: Optional[list[str]] = None) -> int:

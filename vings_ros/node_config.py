@@ -84,7 +84,11 @@ class FrontendNodeConfig(RespawnSettings):
     one image). ``calib_file``: calibration YAML used instead of the camera_info topic.
     ``calib_wait_s``: how long an image that arrived before any calibration is held.
     ``width``/``height``: working resolution the images are resized/undistorted to (0 = as
-    published). ``path_max_poses``: poses in /vings/path."""
+    published). ``path_max_poses``: poses in /vings/path. ``resend_after_s``: keyframes the mapper
+    has not acknowledged (listed on /vings/keyframes/refined) this long after they were sent, or
+    when a mapper (re)appears, are sent again (a mapper that was down or restarted gets what it
+    missed; 0 = never); ``unacked_memory_keyframes``: of those, held in memory (the others wait in
+    a private folder on disk)."""
 
     queue_policy: QueuePolicy = QueuePolicy.KEEP_NEWEST
     queue_size: int = 64
@@ -93,9 +97,15 @@ class FrontendNodeConfig(RespawnSettings):
     width: int = 0
     height: int = 0
     path_max_poses: int = 10000
+    resend_after_s: float = 30.0
+    unacked_memory_keyframes: int = 8
 
     def validate(self) -> None:
         super().validate()
+        if self.resend_after_s < 0:
+            raise ValueError("resend_after_s must be >= 0")
+        if self.unacked_memory_keyframes < 1:
+            raise ValueError("unacked_memory_keyframes must be >= 1")
         if self.queue_size < 1:
             raise ValueError("queue_size must be >= 1")
         if self.width < 0 or self.height < 0:
