@@ -117,6 +117,7 @@ class FrontendNode(StageNode):
         self.keyframes_resent = 0
         self._mapper_up = False
         self._next_ack_check = 0.0
+        self._last_refined = time.monotonic()
         self.sub_refined = self.create_subscription(Path, T.REFINED_KEYFRAMES_TOPIC, self._on_refined,
                                                     T.latched_qos(1))
 
@@ -138,10 +139,13 @@ class FrontendNode(StageNode):
             return
         with self._unacked_lock:
             self.unacked.acknowledged(stamps)
+            self._last_refined = time.monotonic()
 
     def _resend_unacked(self) -> None:
-        """Send again the keyframes the mapper has not acknowledged, when a mapper (re)appeared or
-        the oldest waited ``resend_after_s`` (worker thread, at most once a second)."""
+        """Send again the keyframes the mapper has not acknowledged, when a mapper (re)appeared, or
+        when the oldest waited ``resend_after_s`` and the mapper listed nothing new for as long (a
+        mapper that is only behind keeps listing: no re-send). Worker thread, at most once a
+        second."""
         now = time.monotonic()
         if self.settings.resend_after_s <= 0 or now < self._next_ack_check:
             return
@@ -149,7 +153,9 @@ class FrontendNode(StageNode):
         up = self.count_publishers(T.REFINED_KEYFRAMES_TOPIC) > 0
         appeared, self._mapper_up = up and not self._mapper_up, up
         with self._unacked_lock:
-            if not len(self.unacked) or not up or not (appeared or self.unacked.overdue(now, self.settings.resend_after_s)):
+            wait = self.settings.resend_after_s
+            stalled = self.unacked.overdue(now, wait) and now - self._last_refined > wait
+            if not len(self.unacked) or not up or not (appeared or stalled):
                 return
             kfs = self.unacked.pending()
             self.unacked.restamp(now)
