@@ -892,7 +892,7 @@ class SlamRunner:
         logged and leaves the run's other outputs complete."""
         from .report import run_files
         out = self.out
-        stage = out.staging_path(out.out_dir / "x").parent
+        stage = out.staging_dir
         gt = final.get("gt")
         run_files.write_data(stage, timeline=self.timeline, info=run_files.run_info(self), gt=gt, views=self._views)
         if not self.cfg.report:

@@ -237,6 +237,11 @@ class RunOutput:
             raise InputError(f"{self.out_dir}: cannot replace a previous run's outputs "
                              f"({e.strerror or e})") from None
 
+    @property
+    def staging_dir(self) -> Path:
+        """The folder the end of a run writes into before :meth:`commit_staged`."""
+        return self.out_dir / STAGING_DIR
+
     def staging_path(self, final: Path) -> Path:
         """Where the end of a run writes the file ``final`` (a path in the output folder) before
         :meth:`commit_staged` moves it in place."""
