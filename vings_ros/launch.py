@@ -138,6 +138,7 @@ class Launcher:
             self.stop_timeout[spec.name] = timeout
             self.exit_policy[spec.name] = policy
         self.respawns: dict[str, int] = {}
+        self._signals: list[int] = []       # stop requests received (a second one hurries the stop)
         self._restart_at: dict[str, float] = {}
         if opt.record and not str(opt.record).endswith(".mcap"):
             raise ConfigError(f"--record {opt.record}: the output must be a .mcap file")
@@ -230,9 +231,20 @@ class Launcher:
                 os.killpg(p.pid, signal.SIGINT)
             except ProcessLookupError:
                 continue
-            try:
-                p.wait(self.stop_timeout[name])
-            except subprocess.TimeoutExpired:
+            self._say(f"stopping {name} (pid {p.pid}; at most {self.stop_timeout[name]:.0f} s; Ctrl-C again "
+                      f"to skip its remaining work)")
+            deadline = time.monotonic() + self.stop_timeout[name]
+            hurried = len(self._signals)
+            while p.poll() is None and time.monotonic() < deadline:
+                if len(self._signals) > hurried:        # Ctrl-C again: the node skips to its checkpoint
+                    hurried = len(self._signals)
+                    self._say(f"asking {name} again to stop now")
+                    try:
+                        os.killpg(p.pid, signal.SIGINT)
+                    except ProcessLookupError:
+                        break
+                time.sleep(0.05)
+            if p.poll() is None:
                 self._say(f"{name} did not stop within {self.stop_timeout[name]:.0f} s; killing it")
                 os.killpg(p.pid, signal.SIGKILL)
                 p.wait()
@@ -250,7 +262,7 @@ class Launcher:
     def run(self) -> int:
         """Start, watch until a node dies (an optional one's exit is reported and the others go on)
         or SIGINT/SIGTERM/SIGHUP; returns the exit code."""
-        stop_requested = []
+        stop_requested = self._signals
 
         def _sig(signum, frame):  # noqa: ARG001
             stop_requested.append(signum)

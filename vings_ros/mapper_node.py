@@ -491,7 +491,8 @@ class MapperNode(StageNode):
             self._stored.set()
             self._abort.set()           # the keyframe in training ends at its next chunk
             deadline = time.monotonic() + STOP_WAIT_S
-            while self._busy and self.worker.thread.is_alive() and time.monotonic() < deadline:
+            while self._busy and self.worker.thread.is_alive() and time.monotonic() < deadline \
+                    and not self.hurried:
                 time.sleep(0.02)
             self.get_logger().info(f"stopping: {self.queue.keyframes} keyframe(s) not mapped yet are stored in "
                                    f"{self.queue.spill_dir} with the checkpoint; the mapper maps them when it "
@@ -504,7 +505,7 @@ class MapperNode(StageNode):
                                    + ")")
         deadline = time.monotonic() + timeout
         while (self.queue.keyframes or self._busy) and self.error is None and \
-                self.worker.thread.is_alive() and time.monotonic() < deadline:
+                self.worker.thread.is_alive() and time.monotonic() < deadline and not self.hurried:
             time.sleep(0.05)
         if self.queue.keyframes or self._busy:
             kept = (f"; they wait in {self.queue.spill_dir} for the next start (resume)"

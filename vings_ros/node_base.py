@@ -154,6 +154,7 @@ class StageNode(Node):
         name = self.spec.name
         super().__init__(name, automatically_declare_parameters_from_overrides=True)
         self.error: Optional[BaseException] = None
+        self.hurried = False            # a second stop request: see hurry()
         self.worker: Optional[Worker] = None
         self._queues: list[InputQueue] = []
         sections = node_sections(self, graph_layout([self.spec]))
@@ -286,6 +287,13 @@ class StageNode(Node):
 
     # -------------------------------------------------------------------------------- shutdown
 
+    def hurry(self) -> None:
+        """A second stop request (a second Ctrl-C) while stopping: :meth:`drain` ends at once and
+        the stop goes straight to the final checkpoint (:attr:`hurried`)."""
+        self.hurried = True
+        self.get_logger().warning("stop requested again: skipping the remaining work, writing the "
+                                  "final checkpoint")
+
     def shutdown(self, executor: Any = None) -> None:
         """Ordered stop: :meth:`drain`, close the input queues, stop the worker (its current step
         ends), :meth:`finish`, the final checkpoint, :meth:`close`. Everything after the worker
@@ -389,6 +397,8 @@ def run_node(make_node: Callable[[], Any], args: Optional[list[str]] = None,
     stop = threading.Event()
 
     def _sig(signum, frame):  # noqa: ARG001
+        if stop.is_set() and node is not None:     # a second request while stopping: hurry
+            node.hurry()
         stop.set()
 
     signal.signal(signal.SIGINT, _sig)
