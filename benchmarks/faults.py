@@ -1,0 +1,295 @@
+"""The node graph under faults (docs/ros.md): what a stop, a dead launcher and a killed node cost.
+
+Experiments (``--exp``, comma list):
+
+* ``launcher_kill``: ``vings launch`` (every default node), ``kill -9`` of the launcher once the
+  nodes are up: seconds until every node process has exited (target <= 5 s) and Fast DDS
+  shared-memory files left by them (target 0).
+* ``ctrl_c``: ``vings launch --checkpoint`` + ``vings replay --wait-for-graph`` of a synthetic room
+  with a slow mapper (``mapping.iters_per_keyframe``), Ctrl-C on the launcher once the mapper is
+  ``--behind`` keyframes behind the front end: stop time (target <= 10 s); keyframes the front end
+  emitted vs keyframes in the checkpoint plus those stored beside it (target equal); then the mapper
+  is started again on the checkpoint: seconds until every stored keyframe is mapped.
+* ``node_kill``: for each of ``--nodes`` (default: mapper_node, eraser_node, loop_closer_node,
+  frontend_node), ``kill -9`` of that node at a random moment of a replay (back-pressure, a
+  checkpoint): seconds until it is back (respawned, its /diagnostics heard again); keyframes
+  emitted vs in the final checkpoint; ATE of the front end's path against the fault-free run's.
+
+The last stdout line is one JSON object keyed by experiment (``benchmarks/_harness.py``).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import random
+import signal
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _harness import run_experiments  # noqa: E402
+
+REPO = Path(__file__).resolve().parent.parent
+
+
+def _log(*a) -> None:
+    print("[bench faults]", *a, file=sys.stderr, flush=True)
+
+
+def _procs_with_env(key: str, value: str) -> list[int]:
+    out = []
+    for d in Path("/proc").iterdir():
+        if not d.name.isdigit() or int(d.name) == os.getpid():
+            continue
+        try:
+            if f"{key}={value}".encode() in (d / "environ").read_bytes().split(b"\0"):
+                out.append(int(d.name))
+        except OSError:
+            continue
+    return out
+
+
+def _node_pids(mark: str) -> dict[str, int]:
+    """pid of each VINGS node process of the graph marked ``mark`` (by module name)."""
+    out = {}
+    for pid in _procs_with_env("VINGS_BENCH_MARK", mark):
+        try:
+            cmd = (Path("/proc") / str(pid) / "cmdline").read_bytes().split(b"\0")
+        except OSError:
+            continue
+        for c in cmd:
+            c = c.decode(errors="replace")
+            if c.startswith("vings_ros.") and c.endswith("_node"):
+                out[c.split(".")[-1]] = pid
+            elif c == "vings_ros.recorder":
+                out["recorder_node"] = pid
+    return out
+
+
+def _launch(domain: int, mark: str, params: list[str], ckpt: Path | None, log: Path) -> subprocess.Popen:
+    cmd = [sys.executable, "-m", "vings_ros.cli", "launch", "--use-sim-time", "--backpressure",
+           "--domain-id", str(domain)]
+    if ckpt is not None:
+        cmd += ["--checkpoint", str(ckpt)]
+    for p in params:
+        cmd += ["-p", p]
+    env = dict(os.environ, VINGS_BENCH_MARK=mark, PYTHONPATH=str(REPO))
+    return subprocess.Popen(cmd, env=env, stdout=log.open("w"), stderr=subprocess.STDOUT, start_new_session=True)
+
+
+class _Listener:
+    """An rclpy node of this process: keyframe stamps the front end emitted, the mapper's latest
+    keyframe list, diagnostics heard per node name."""
+
+    def __init__(self, domain: int) -> None:
+        from vings_ros.ros_env import apply_ros_environment
+        apply_ros_environment(domain_id=domain)
+        import rclpy
+        from diagnostic_msgs.msg import DiagnosticArray
+        from geometry_msgs.msg import PoseStamped
+        from nav_msgs.msg import Path as PathMsg
+
+        from msg_adapters import topics as T
+        rclpy.init()
+        self.rclpy = rclpy
+        self.node = rclpy.create_node("bench_faults")
+        self.emitted: set[int] = set()
+        self.mapped: set[int] = set()
+        self.heard: dict[str, float] = {}
+        st = lambda h: h.stamp.sec * 1_000_000_000 + h.stamp.nanosec  # noqa: E731
+        self.node.create_subscription(PoseStamped, T.KEYFRAME_POSE_TOPIC, lambda m: self.emitted.add(st(m.header)),
+                                      T.sensor_qos(200))
+        self.node.create_subscription(PathMsg, T.REFINED_KEYFRAMES_TOPIC,
+                                      lambda m: self.mapped.update(st(p.header) for p in m.poses), T.latched_qos(1))
+        self.node.create_subscription(DiagnosticArray, T.DIAGNOSTICS_TOPIC, self._diag, T.sensor_qos(50))
+        self._stop = threading.Event()
+        self._th = threading.Thread(target=self._spin, daemon=True)
+        self._th.start()
+
+    def _diag(self, msg) -> None:
+        for s in msg.status:
+            self.heard[s.name] = time.monotonic()
+
+    def _spin(self) -> None:
+        from rclpy.executors import SingleThreadedExecutor
+        ex = SingleThreadedExecutor()
+        ex.add_node(self.node)
+        while not self._stop.is_set():
+            ex.spin_once(timeout_sec=0.05)
+        ex.shutdown()
+
+    def close(self) -> None:
+        self._stop.set()
+        self._th.join(5)
+        self.node.destroy_node()
+        self.rclpy.shutdown()
+
+
+def _sim(work: Path, frames: int) -> Path:
+    from vings_core.sim import generate
+    d = work / f"room_{frames}"
+    if not (d / "room.mcap").exists():
+        generate("room", d, frames=frames, seed=0)
+    return next(d.glob("*.mcap"))
+
+
+def exp_launcher_kill(work: Path, args) -> dict:
+    from vings_ros.ros_env import cleanup_fastdds_shm, shm_snapshot
+    mark = f"lk{os.getpid()}"
+    snap = shm_snapshot()
+    p = _launch(args.domain, mark, [], None, work / "launcher_kill.log")
+    t_end = time.monotonic() + 120
+    while len(_node_pids(mark)) < 4 and time.monotonic() < t_end:
+        time.sleep(0.2)
+    pids = _node_pids(mark)
+    if len(pids) < 4:
+        p.kill()
+        return {"incomplete": f"only {sorted(pids)} came up (log {work / 'launcher_kill.log'})"}
+    time.sleep(3.0)
+    t0 = time.monotonic()
+    os.kill(p.pid, signal.SIGKILL)
+    p.wait()
+    while any(Path(f"/proc/{q}").exists() for q in pids.values()) and time.monotonic() < t0 + 60:
+        time.sleep(0.02)
+    gone_s = time.monotonic() - t0
+    left = [q for q in pids.values() if Path(f"/proc/{q}").exists()]
+    for q in left:
+        os.kill(q, signal.SIGKILL)
+    time.sleep(1.0)
+    leftover = cleanup_fastdds_shm(snap, dry_run=True)
+    return {"nodes": sorted(pids), "all_exited_s": round(gone_s, 2), "still_running": len(left),
+            "shm_files_left": len(leftover)}
+
+
+def exp_ctrl_c(work: Path, args) -> dict:
+    from vings_core.mapping import Mapper
+    mcap = _sim(work, args.frames)
+    ck = work / "ctrl_c" / "map.ckpt"
+    ck.parent.mkdir(parents=True, exist_ok=True)
+    for f in ck.parent.glob("*"):
+        if f.is_file():
+            f.unlink()
+    mark = f"cc{os.getpid()}"
+    slow = [f"mapping.iters_per_keyframe={args.iters}", "mapper_node.checkpoint_period_s=0.0"]
+    lis = _Listener(args.domain)
+    p = _launch(args.domain, mark, slow + ["loop.enabled=false"], ck, work / "ctrl_c.log")
+    env = dict(os.environ, PYTHONPATH=str(REPO))
+    rep = subprocess.Popen([sys.executable, "-m", "vings_ros.cli", "replay", str(mcap), "--wait-for-graph",
+                            "--domain-id", str(args.domain)], env=env, stdout=subprocess.DEVNULL,
+                           stderr=subprocess.DEVNULL)
+    t_end = time.monotonic() + args.timeout
+    while time.monotonic() < t_end and rep.poll() is None and len(lis.emitted) - len(lis.mapped) < args.behind:
+        time.sleep(0.2)
+    behind = len(lis.emitted) - len(lis.mapped)
+    rep.send_signal(signal.SIGINT)
+    rep.wait(60)
+    time.sleep(2.0)                         # the front end's last keyframe packets reach the mapper
+    emitted = set(lis.emitted)
+    t0 = time.monotonic()
+    os.killpg(p.pid, signal.SIGINT)
+    p.wait(300)
+    stop_s = time.monotonic() - t0
+    in_ckpt = set(Mapper.load_checkpoint(ck).keyframe_poses()) if ck.exists() else set()
+    stored = {int(f.stem.split("-")[2]) for f in (ck.parent / (ck.name + ".queue")).glob("kf-*.pt")}
+    # the mapper again on the checkpoint: it maps what was stored
+    t1 = time.monotonic()
+    p2 = _launch(args.domain, mark + "r", slow + ["loop.enabled=false", "eraser.enabled=false"], ck,
+                 work / "ctrl_c_resume.log")
+    while time.monotonic() < t1 + args.timeout and not (emitted <= lis.mapped):
+        time.sleep(0.5)
+    resume_s = time.monotonic() - t1
+    os.killpg(p2.pid, signal.SIGINT)
+    p2.wait(300)
+    lis.close()
+    after = set(Mapper.load_checkpoint(ck).keyframe_poses()) if ck.exists() else set()
+    return {"behind_at_stop": behind, "stop_s": round(stop_s, 2), "emitted": len(emitted),
+            "in_checkpoint": len(in_ckpt & emitted), "stored_beside": len(stored & emitted),
+            "lost": len(emitted - in_ckpt - stored), "resume_s_all_mapped": round(resume_s, 1),
+            "after_resume_in_checkpoint": len(after & emitted)}
+
+
+def exp_node_kill(work: Path, args) -> dict:
+    from vings_core.eval.traj import evaluate_trajectory
+    from vings_core.io import open_source
+    from vings_core.mapping import Mapper
+    from vings_core.types import Trajectory
+    mcap = _sim(work, args.frames)
+    gt = open_source(str(mcap)).gt_camera_trajectory()
+    out = {}
+    for victim in ["none"] + [n for n in args.nodes.split(",") if n]:
+        for trial in range(args.trials if victim != "none" else 1):
+            tag = f"{victim}_{trial}"
+            ck = work / "node_kill" / tag / "map.ckpt"
+            ck.parent.mkdir(parents=True, exist_ok=True)
+            mark = f"nk{os.getpid()}{tag}"
+            lis = _Listener(args.domain)
+            p = _launch(args.domain, mark, [f"mapping.iters_per_keyframe={args.iters}"], ck,
+                        work / "node_kill" / tag / "launch.log")
+            env = dict(os.environ, PYTHONPATH=str(REPO))
+            rep = subprocess.Popen([sys.executable, "-m", "vings_ros.cli", "replay", str(mcap), "--wait-for-graph",
+                                    "--ack-timeout", "120", "--domain-id", str(args.domain)], env=env,
+                                   stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+            rec = {}
+            if victim != "none":
+                time.sleep(random.Random(trial).uniform(20, 60))
+                pid = _node_pids(mark).get(victim)
+                if pid is not None and rep.poll() is None:
+                    name = {"frontend_node": "frontend", "mapper_node": "mapper", "loop_closer_node": "loop_closer",
+                            "eraser_node": "eraser"}[victim]
+                    t_kill = time.monotonic()
+                    os.kill(pid, signal.SIGKILL)
+                    while time.monotonic() < t_kill + 120:
+                        new = _node_pids(mark).get(victim)
+                        if new not in (None, pid) and any(k.startswith(name) and v > t_kill + 0.5
+                                                          for k, v in lis.heard.items()):
+                            break
+                        time.sleep(0.2)
+                    rec["recover_s"] = round(time.monotonic() - t_kill, 1)
+            rep.wait(args.timeout)
+            time.sleep(3.0)
+            os.killpg(p.pid, signal.SIGINT)
+            p.wait(300)
+            emitted = set(lis.emitted)
+            lis.close()
+            kfs = Mapper.load_checkpoint(ck).keyframe_poses() if ck.exists() else {}
+            stored = {int(f.stem.split("-")[2]) for f in (ck.parent / (ck.name + ".queue")).glob("kf-*.pt")}
+            rec.update(emitted=len(emitted), in_checkpoint=len(emitted & set(kfs)), stored=len(emitted & stored))
+            if len(kfs) >= 3:
+                try:
+                    rec["kf_ate_sim3_m"] = evaluate_trajectory(Trajectory.from_poses(kfs), gt)["ate_sim3_m"]
+                except Exception as e:  # noqa: BLE001 - reported
+                    rec["kf_ate_error"] = str(e)
+            out[tag] = rec
+            _log(tag, json.dumps(rec))
+    return out
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--exp", default="launcher_kill,ctrl_c")
+    ap.add_argument("--frames", type=int, default=120, help="synthetic room frames for ctrl_c / node_kill")
+    ap.add_argument("--iters", type=int, default=150, help="mapping.iters_per_keyframe (a slow mapper)")
+    ap.add_argument("--behind", type=int, default=8, help="ctrl_c: stop when the mapper is this far behind")
+    ap.add_argument("--nodes", default="mapper_node,eraser_node,loop_closer_node,frontend_node")
+    ap.add_argument("--trials", type=int, default=3)
+    ap.add_argument("--timeout", type=float, default=1200.0)
+    ap.add_argument("--domain", type=int, default=140 + os.getpid() % 60)
+    args = ap.parse_args()
+    work = Path(os.environ.get("TMPDIR", tempfile.gettempdir())) / "vings_bench_faults"
+    work.mkdir(parents=True, exist_ok=True)
+    fns = {"launcher_kill": exp_launcher_kill, "ctrl_c": exp_ctrl_c, "node_kill": exp_node_kill}
+    names = [e.strip() for e in args.exp.split(",") if e.strip()]
+    bad = [n for n in names if n not in fns]
+    if bad:
+        ap.error(f"unknown experiment(s) {bad}; known: {', '.join(fns)}")
+    out: dict = {}
+    return run_experiments([(n, lambda n=n: fns[n](work, args)) for n in names], out, log=_log)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
