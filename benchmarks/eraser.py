@@ -109,7 +109,8 @@ def _run(path: Path, eraser: bool, truth: bool):
         runner.eraser.process = scored
     t = time.perf_counter()
     m = runner.run()
-    log(f"{out.name}: {time.perf_counter() - t:.0f} s, ATE se3 {m.get('ate_se3_m')}, masked {m.get('masked_fraction')}")
+    log(f"{out.name}: {time.perf_counter() - t:.0f} s, ATE se3 {m.get('ate_se3_m')} sim3 {m.get('ate_sim3_m')} "
+        f"(metric: {m.get('scale_observable')}), masked {m.get('masked_fraction')}")
     return m, runner, scores
 
 
@@ -218,7 +219,8 @@ def exp_dynamic(a) -> dict:
         for seed in a.seeds:
             path, kw = _sim(scene, seed, True, a)
             on_m, on_r, scores = _run(path, eraser=True, truth=True)
-            on = {"ate_se3_m": on_m["ate_se3_m"], "masked_fraction": on_m["masked_fraction"],
+            on = {"ate_se3_m": on_m["ate_se3_m"], "ate_sim3_m": on_m["ate_sim3_m"],
+                  "metric": bool(on_m.get("scale_observable")), "masked_fraction": on_m["masked_fraction"],
                   "eraser_ms_mean": on_m["eraser_ms_mean"], "masks": _pooled(scores),
                   **_safe(_swept, on_r, path, kw, seed), **_safe(_static_psnr, on_r, path)}
             for k, v in scores.items():
@@ -229,15 +231,20 @@ def exp_dynamic(a) -> dict:
                 runs[path.name] = {"eraser": on, "frames_objects_over_15pct": _big_share(path)}
                 continue
             off_m, off_r, _ = _run(path, eraser=False, truth=False)
-            off = {"ate_se3_m": off_m["ate_se3_m"], **_safe(_swept, off_r, path, kw, seed),
+            off = {"ate_se3_m": off_m["ate_se3_m"], "ate_sim3_m": off_m["ate_sim3_m"],
+                   "metric": bool(off_m.get("scale_observable")), **_safe(_swept, off_r, path, kw, seed),
                    **_safe(_static_psnr, off_r, path)}
             del off_r
             r = {"eraser": on, "no_eraser": off, "frames_objects_over_15pct": _big_share(path)}
             _save(path.name, {**r, "scores": {k: [vars(x) for x in v] for k, v in scores.items()}})
             if on.get("swept_gaussians") is not None and off.get("swept_gaussians"):
                 r["swept_reduction"] = round(1 - on["swept_gaussians"] / off["swept_gaussians"], 4)
-            if on["ate_se3_m"] and off["ate_se3_m"]:
-                r["ate_change"] = round(on["ate_se3_m"] / off["ate_se3_m"] - 1, 4)
+            # SE(3) when both runs are metric (visual-inertial initialised), else Sim(3): a run whose
+            # scale was never observed has no meaningful rigid-alignment error
+            key = "ate_se3_m" if on["metric"] and off["metric"] else "ate_sim3_m"
+            if on[key] and off[key]:
+                r["ate_change"] = round(on[key] / off[key] - 1, 4)
+                r["ate_compared"] = key
             for k in ("psnr_static_keyframes_db", "psnr_static_heldout_db"):
                 if on.get(k) is not None and off.get(k) is not None:
                     r[k.replace("psnr_", "psnr_gain_")] = round(on[k] - off[k], 3)
