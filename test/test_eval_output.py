@@ -21,7 +21,7 @@ CONTRACT_KEYS = ["frames", "frames_tracked", "keyframes", "wall_s", "fps", "ate_
                  "vi_state", "vi_initialised_at_s", "scale_observable", "acc_bias", "gyro_bias", "td_s",
                  "td_estimates", "imu_only_frames", "vi_error",
                  "loops_accepted", "loop_candidates_rejected", "loop_detect_ms_mean",
-                 "masked_fraction", "eraser_ms_mean", "eraser_error"]
+                 "masked_fraction", "eraser_ms_mean", "eraser_error", "frames_bad"]
 
 
 def test_metric_keys_are_the_contract():
