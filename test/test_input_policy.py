@@ -63,3 +63,14 @@ def test_an_empty_params_file_is_an_error(tmp_path, text, capsys):
     p.write_text(text)
     assert main(["run", str(tmp_path / "nothing"), "--out", str(tmp_path / "o"), "--params", str(p)]) == 2
     assert "empty" in capsys.readouterr().err
+
+
+def test_a_recording_without_one_decodable_frame_is_an_error(tmp_path, capsys):
+    from vings_core.sim import generate
+    from vings_ros.cli import main
+    generate("room", tmp_path / "r", frames=6, width=96, height=64, seed=1, mcap=False)
+    for f in (tmp_path / "r" / "mav0" / "cam0" / "data").glob("*.png"):
+        f.write_bytes(b"garbage")
+    assert main(["run", str(tmp_path / "r"), "--out", str(tmp_path / "o"), "--no-progress", "--sync"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "corrupt or unreadable image" in err[0]

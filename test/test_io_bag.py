@@ -118,15 +118,18 @@ def test_empty_topic(tmp_path):
 def test_unknown_encoding_and_corrupt_images(tmp_path):
     p = make_bag(tmp_path / "u", BagSpec(image_topics={"/cam": "mono8"}, corrupt_image_index=2,
                                          imu_topics=()), "sqlite3")
-    src = open_source(p)
+    src = open_source(p, SourceOptions(on_bad_frame="abort"))
     it = src.frames()
     next(it), next(it)
     with pytest.raises(InputError, match=r"/cam @ \d+ ns: image data has 1536 bytes, expected 3072"):
         next(it)
+    src = open_source(p)                    # the default: skipped and counted
+    n = len(src.frame_stamps())
+    assert len(list(src.frames())) == n - 1 and "expected 3072" in src.bad_frames[0]
     p = make_bag(tmp_path / "j.mcap", BagSpec(image_topics={"/cam": "compressed-jpeg"}, corrupt_image_index=1,
                                               imu_topics=()), "plain")
     with pytest.raises(InputError, match=r"j.mcap:/cam @ \d+ ns: corrupt compressed image"):
-        list(open_source(p).frames())
+        list(open_source(p, SourceOptions(on_bad_frame="abort")).frames())
     # unknown encoding: the first image is decoded when the bag is opened
     from rosbags.rosbag2 import StoragePlugin, Writer
     from rosbags.typesys import Stores, get_typestore

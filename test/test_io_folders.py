@@ -138,7 +138,10 @@ def test_euroc_bad_inputs(tmp_path):
     assert len(src.frame_stamps()) == 2 and "1 listed image file(s) missing" in src.warnings[0]
     files[2].write_bytes(b"not a png")
     with pytest.raises(InputError, match=files[2].name + ": corrupt or unreadable image"):
-        list(open_source(root).frames())
+        list(open_source(root, SourceOptions(on_bad_frame="abort")).frames())
+    src = open_source(root)                 # the default: skipped, counted, warned
+    assert len(list(src.frames())) == 1 and len(src.bad_frames) == 1 and files[2].name in src.bad_frames[0]
+    assert any("frame skipped" in w for w in src.warnings)
     # a bad IMU row names file and line
     root = make_euroc(tmp_path / "badimu", n=2)
     with open(root / "mav0/imu0/data.csv", "a") as f:
@@ -149,7 +152,7 @@ def test_euroc_bad_inputs(tmp_path):
     root = make_euroc(tmp_path / "size", n=2)
     write_png(root / f"mav0/cam0/data/{T0 + 50_000_000}.png", np.zeros((10, 10), np.uint8))
     with pytest.raises(InputError, match=r"image is 10x10 but the calibration"):
-        list(open_source(root).frames())
+        list(open_source(root, SourceOptions(on_bad_frame="abort")).frames())
 
 
 def test_write_euroc_round_trip(tmp_path):

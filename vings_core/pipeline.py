@@ -611,6 +611,10 @@ class SlamRunner:
                     self.on_frame({"stamp_ns": frame.stamp_ns, "state": state,
                                    "keyframes": len(self._kf_stamps)})
             bar.close()
+            bad = getattr(self.source, "bad_frames", [])
+            if n_frames == 0 and bad:
+                raise InputError(f"{self.source.path}: none of the {len(bad)} frames could be decoded "
+                                 f"(first: {bad[0]})")
             self._finish_stages(worker)
             # everything slow (evaluation renders) happens before any output file is replaced
             with timed("evaluation", "renders and metrics"):
