@@ -414,7 +414,8 @@ class SlamRunner:
         er = None
         if self.eraser is not None and self.eraser_results and self.eraser_results[-1].get("stamp_ns") == kf.stamp_ns:
             r = self.eraser_results[-1]
-            er = {"masked_fraction": r["masked_fraction"], "time_ms": r["time_ms"]}
+            er = {"masked_fraction": r["masked_fraction"], "time_ms": r["time_ms"], "proposals": r["proposals"],
+                  "dynamic_rerender": r["dynamic_rerender"], "dynamic_motion": r["dynamic_motion"]}
         mp = self.mapper
         fe = self.frontend
         self.timeline.record(

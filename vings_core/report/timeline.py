@@ -9,7 +9,8 @@ A line (keys always present, ``null`` where a stage is off)::
      "rss_mb": 812.4, "tracking": "tracking", "vi_state": "visual-inertial",
      "mapper": {"light": false, "backlog": 0},
      "loop": {"candidates": 1, "accepted": 0} | null,
-     "eraser": {"masked_fraction": 0.04, "time_ms": 110.2} | null}
+     "eraser": {"masked_fraction": 0.04, "time_ms": 110.2, "proposals": 212,
+                "dynamic_rerender": 3, "dynamic_motion": 2} | null}
 
 * ``t_s``: wall seconds from the start of the run to the end of this keyframe's mapping;
 * ``steps``: seconds spent in each profiled (stage, step) since the previous line, by every thread
@@ -22,7 +23,8 @@ A line (keys always present, ``null`` where a stage is off)::
 * ``tracking`` / ``vi_state``: the front end's state and the visual-inertial state (null without
   a front end, e.g. ``--gt-poses``);
 * ``loop``: candidates the loop closer checked for this keyframe and how many it accepted;
-* ``eraser``: the dynamic eraser's masked fraction and time for this keyframe.
+* ``eraser``: the dynamic eraser's masked fraction and time for this keyframe, its proposals and
+  how many of them each cue found dynamic.
 """
 from __future__ import annotations
 
