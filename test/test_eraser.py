@@ -260,3 +260,27 @@ def test_float_label_maps_from_a_model_are_labels():
     assert len(np.unique(lab)) == 4
     with pytest.raises(ConfigError, match="integer labels"):
         model_output_labels(y + 0.5 * np.random.default_rng(0).random(y.shape).astype(np.float32), H, W)
+
+
+def test_motion_residual_tolerates_depth_error_where_the_map_is_seen_at_a_grazing_angle():
+    """The map's depth is off by a factor 2 everywhere (the plane rendered at 4 m instead of 2 m):
+    along the epipolar line the static plane then seems to move. Where the map's normal says the
+    surface is seen at a grazing angle, that depth is not trusted as much (the tolerance along
+    the line grows as 1 / |cos|); where it faces the camera, the same error still counts."""
+    a, b = _plane_views(0)
+    T_prev, T_cur = np.eye(4), _camera_move(0.1)
+    wrong = np.full((H, W), 4.0)
+    plain = motion_residual(b, a, T_cur, T_prev, CAM, wrong, 1.5, 0.15, 1.0, refine=False)
+    rest = np.zeros((H, W), bool)
+    rest[10:-10, 10:-10] = True
+    assert plain.moving[rest & plain.reliable].mean() > 0.9
+    grazing = np.zeros((H, W, 3), np.float32)
+    grazing[..., 0] = 1.0                     # normals across the rays: cos ~ 0 (clamped to 0.2)
+    g = motion_residual(b, a, T_cur, T_prev, CAM, wrong, 1.5, 0.15, 1.0, refine=False, normal=grazing,
+                        grazing_cos_min=0.2)
+    assert g.moving[rest & g.reliable].mean() < 0.02
+    frontal = np.zeros((H, W, 3), np.float32)
+    frontal[..., 2] = -1.0                    # facing the camera: cos = 1, nothing changes
+    f = motion_residual(b, a, T_cur, T_prev, CAM, wrong, 1.5, 0.15, 1.0, refine=False, normal=frontal,
+                        grazing_cos_min=0.2)
+    assert np.array_equal(f.moving, plain.moving)

@@ -73,6 +73,10 @@ class EraserConfig:
     motion_fraction: float = 0.4            #: a proposal moves when this fraction of its reliable
                                             #: pixels moves
     motion_min_reliable: float = 0.3        #: ... and at least this fraction of it is reliable
+    motion_grazing_cos_min: float = 0.2     #: the along-line tolerance is divided by the |cos| of
+                                            #: the angle between the map's normal and the ray, at
+                                            #: least this (a grazing surface's depth is uncertain;
+                                            #: 1 = off)
     motion_refine_pose: bool = True         #: refine the keyframes' relative pose on the flow first
     motion_max_fraction: float = 0.5        #: more reliable pixels moving than this: the relative
                                             #: motion was not found, no motion cue for the keyframe
@@ -105,6 +109,8 @@ class EraserConfig:
                      "max_masked_fraction", "motion_max_fraction", "static_fraction"):
             if not 0 <= getattr(self, name) <= 1:
                 raise ValueError(f"{name} must be in [0, 1], got {getattr(self, name)}")
+        if not 0 < self.motion_grazing_cos_min <= 1:
+            raise ValueError(f"motion_grazing_cos_min must be in (0, 1], got {self.motion_grazing_cos_min}")
         for name in ("felz_scale", "felz_sigma", "motion_px", "fb_check_px", "sigma_clip", "motion_max_gap_s"):
             if getattr(self, name) <= 0:
                 raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")

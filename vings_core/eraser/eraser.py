@@ -113,8 +113,10 @@ class DynamicEraser:
             stamp0, gray0, T0 = self._prev
             if 0 < (int(kf.stamp_ns) - stamp0) * 1e-9 <= cfg.motion_max_gap_s:
                 depth = None if render is None else np.where(covered, np.asarray(render["depth"]), 0.0)
+                normal = None if render is None or "normal" not in render else np.asarray(render["normal"])
                 res = motion_residual(gray, gray0, T_wc, T0, kf.camera, depth, cfg.motion_px, cfg.motion_rel,
-                                      cfg.fb_check_px, cfg.motion_refine_pose)
+                                      cfg.fb_check_px, cfg.motion_refine_pose, normal=normal,
+                                      grazing_cos_min=cfg.motion_grazing_cos_min)
                 if res.moving.sum() <= cfg.motion_max_fraction * max(1, res.reliable.sum()):
                     dyn_mo = moving_proposals(labels, res, cfg.min_proposal_px, cfg.motion_fraction,
                                               cfg.motion_min_reliable)

@@ -72,12 +72,16 @@ def sample_flow(flow: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
 
 def motion_residual(cur: np.ndarray, prev: np.ndarray, T_wc_cur: np.ndarray, T_wc_prev: np.ndarray,
                     camera: CameraModel, depth: Optional[np.ndarray], motion_px: float,
-                    motion_rel: float, fb_check_px: float, refine: bool = True) -> MotionResidual:
+                    motion_rel: float, fb_check_px: float, refine: bool = True,
+                    normal: Optional[np.ndarray] = None, grazing_cos_min: float = 1.0) -> MotionResidual:
     """Residual flow of every pixel of keyframe ``cur`` against keyframe ``prev`` (images ``(H, W)``
     or ``(H, W, 3)``). ``depth``: the map's rendered z-depth at ``cur`` (m, 0 where the map does
     not cover the pixel), or None. ``refine``: the keyframes' relative pose is first refined on
     the flow itself (:func:`refine_relative_pose`), so an error of the front end's poses is not
-    taken for motion."""
+    taken for motion. ``normal``: the map's rendered unit normals at ``cur`` (camera frame, 0 where
+    empty): a surface seen at a grazing angle has an uncertain rendered depth (a surfel's depth
+    error grows as 1 / cos of the angle between its normal and the ray), so the tolerance along
+    the epipolar line is divided by ``max(|cos|, grazing_cos_min)`` (1 = off)."""
     H, W = camera.height, camera.width
     back = dense_flow(cur, prev)                       # cur -> prev
     fwd = dense_flow(prev, cur)                        # prev -> cur
@@ -134,6 +138,12 @@ def motion_residual(cur: np.ndarray, prev: np.ndarray, T_wc_cur: np.ndarray, T_w
         along = np.sqrt(np.maximum(full ** 2 - epi ** 2, 0.0))
         trans = np.hypot(px_x - inf_x, px_y - inf_y)
         thr_along = motion_px + motion_rel * np.where(np.isfinite(trans), trans, 0.0)
+        if normal is not None and grazing_cos_min < 1.0:
+            n = np.asarray(normal, np.float32)
+            ray_n = np.sqrt(rx * rx + ry * ry + 1.0)
+            cos = np.abs(n[..., 0] * rx + n[..., 1] * ry + n[..., 2]) / ray_n
+            has_n = np.linalg.norm(n, axis=-1) > 0.5
+            thr_along = thr_along / np.where(has_n, np.maximum(cos, grazing_cos_min), 1.0)
         residual = np.where(with_depth, full, residual)
         with np.errstate(divide="ignore", invalid="ignore"):
             ratio = np.where(with_depth, np.maximum(ratio, along / thr_along), ratio)
