@@ -77,6 +77,8 @@ class EraserConfig:
                                             #: the angle between the map's normal and the ray, at
                                             #: least this (a grazing surface's depth is uncertain;
                                             #: 1 = off)
+    motion_median_k: float = 3.0            #: a pixel moves only above this many times the
+                                            #: keyframe's median residual ratio (0 = off)
     motion_refine_pose: bool = True         #: refine the keyframes' relative pose on the flow first
     motion_max_fraction: float = 0.5        #: more reliable pixels moving than this: the relative
                                             #: motion was not found, no motion cue for the keyframe
@@ -114,7 +116,7 @@ class EraserConfig:
         for name in ("felz_scale", "felz_sigma", "motion_px", "fb_check_px", "sigma_clip", "motion_max_gap_s"):
             if getattr(self, name) <= 0:
                 raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
-        for name in ("loss_threshold", "motion_rel", "mask_timeout_s", "felz_min_size", "dilate_px",
+        for name in ("loss_threshold", "motion_rel", "motion_median_k", "mask_timeout_s", "felz_min_size", "dilate_px",
                      "min_proposal_px"):
             if getattr(self, name) < 0:
                 raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")

@@ -116,7 +116,7 @@ class DynamicEraser:
                 normal = None if render is None or "normal" not in render else np.asarray(render["normal"])
                 res = motion_residual(gray, gray0, T_wc, T0, kf.camera, depth, cfg.motion_px, cfg.motion_rel,
                                       cfg.fb_check_px, cfg.motion_refine_pose, normal=normal,
-                                      grazing_cos_min=cfg.motion_grazing_cos_min)
+                                      grazing_cos_min=cfg.motion_grazing_cos_min, median_k=cfg.motion_median_k)
                 if res.moving.sum() <= cfg.motion_max_fraction * max(1, res.reliable.sum()):
                     dyn_mo = moving_proposals(labels, res, cfg.min_proposal_px, cfg.motion_fraction,
                                               cfg.motion_min_reliable)

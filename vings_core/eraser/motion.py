@@ -73,7 +73,8 @@ def sample_flow(flow: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
 def motion_residual(cur: np.ndarray, prev: np.ndarray, T_wc_cur: np.ndarray, T_wc_prev: np.ndarray,
                     camera: CameraModel, depth: Optional[np.ndarray], motion_px: float,
                     motion_rel: float, fb_check_px: float, refine: bool = True,
-                    normal: Optional[np.ndarray] = None, grazing_cos_min: float = 1.0) -> MotionResidual:
+                    normal: Optional[np.ndarray] = None, grazing_cos_min: float = 1.0,
+                    median_k: float = 0.0) -> MotionResidual:
     """Residual flow of every pixel of keyframe ``cur`` against keyframe ``prev`` (images ``(H, W)``
     or ``(H, W, 3)``). ``depth``: the map's rendered z-depth at ``cur`` (m, 0 where the map does
     not cover the pixel), or None. ``refine``: the keyframes' relative pose is first refined on
@@ -81,7 +82,10 @@ def motion_residual(cur: np.ndarray, prev: np.ndarray, T_wc_cur: np.ndarray, T_w
     taken for motion. ``normal``: the map's rendered unit normals at ``cur`` (camera frame, 0 where
     empty): a surface seen at a grazing angle has an uncertain rendered depth (a surfel's depth
     error grows as 1 / cos of the angle between its normal and the ray), so the tolerance along
-    the epipolar line is divided by ``max(|cos|, grazing_cos_min)`` (1 = off)."""
+    the epipolar line is divided by ``max(|cos|, grazing_cos_min)`` (1 = off). ``median_k``: a
+    pixel moves only when its residual ratio also exceeds ``median_k`` times the median ratio of
+    the keyframe's reliable pixels (the level a remaining pose or flow error gives every pixel;
+    0 = off)."""
     H, W = camera.height, camera.width
     back = dense_flow(cur, prev)                       # cur -> prev
     fwd = dense_flow(prev, cur)                        # prev -> cur
@@ -159,7 +163,10 @@ def motion_residual(cur: np.ndarray, prev: np.ndarray, T_wc_cur: np.ndarray, T_w
         ratio = np.where(with_depth, ratio, rot / allow)
     residual = np.where(np.isfinite(residual), residual, 0.0)
     ratio = np.where(np.isfinite(ratio), ratio, 0.0)
-    moving = reliable & (ratio > 1.0)
+    level = 1.0
+    if median_k > 0 and reliable.any():
+        level = max(1.0, median_k * float(np.median(ratio[reliable])))
+    moving = reliable & (ratio > level)
     return MotionResidual(residual.astype(np.float32), ratio.astype(np.float32), reliable, moving, with_depth,
                           informative)
 
