@@ -73,12 +73,14 @@ class EraserConfig:
     motion_fraction: float = 0.4            #: a proposal moves when this fraction of its reliable
                                             #: pixels moves
     motion_min_reliable: float = 0.3        #: ... and at least this fraction of it is reliable
-    motion_grazing_cos_min: float = 0.2     #: the along-line tolerance is divided by the |cos| of
+    motion_grazing_cos_min: float = 1.0     #: the along-line tolerance is divided by the |cos| of
                                             #: the angle between the map's normal and the ray, at
                                             #: least this (a grazing surface's depth is uncertain;
-                                            #: 1 = off)
-    motion_median_k: float = 3.0            #: a pixel moves only above this many times the
-                                            #: keyframe's median residual ratio (0 = off)
+                                            #: 1 = off, the default; 0.2 for streets, see
+                                            #: docs/eraser.md)
+    motion_median_k: float = 0.0            #: a pixel moves only above this many times the
+                                            #: keyframe's median residual ratio (0 = off, the
+                                            #: default; 3 for streets, see docs/eraser.md)
     motion_refine_pose: bool = True         #: refine the keyframes' relative pose on the flow first
     motion_max_fraction: float = 0.5        #: more reliable pixels moving than this: the relative
                                             #: motion was not found, no motion cue for the keyframe
