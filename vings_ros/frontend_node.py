@@ -115,7 +115,7 @@ class FrontendNode(StageNode):
         self.unacked = UnackedKeyframes(self.settings.unacked_memory_keyframes)
         self._unacked_lock = threading.Lock()
         self.keyframes_resent = 0
-        self._mapper_up = False
+        self._mapper_up: Optional[bool] = None     # None: never seen; False: seen, then gone
         self._next_ack_check = 0.0
         self._last_refined = time.monotonic()
         self.sub_refined = self.create_subscription(Path, T.REFINED_KEYFRAMES_TOPIC, self._on_refined,
@@ -151,7 +151,10 @@ class FrontendNode(StageNode):
             return
         self._next_ack_check = now + 1.0
         up = self.count_publishers(T.REFINED_KEYFRAMES_TOPIC) > 0
-        appeared, self._mapper_up = up and not self._mapper_up, up
+        # a mapper that came back after it was gone (the first one to appear gets the keyframes anyway)
+        appeared = up and self._mapper_up is False
+        if up or self._mapper_up is not None:
+            self._mapper_up = up
         with self._unacked_lock:
             wait = self.settings.resend_after_s
             stalled = self.unacked.overdue(now, wait) and now - self._last_refined > wait
