@@ -86,7 +86,8 @@ class FrontendNodeConfig(RespawnSettings):
     ``width``/``height``: working resolution the images are resized/undistorted to (0 = as
     published). ``path_max_poses``: poses in /vings/path. ``resend_after_s``: keyframes the mapper
     has not acknowledged (listed on /vings/keyframes/refined) this long after they were sent while
-    the mapper listed nothing new for as long, or when a mapper (re)appears, are sent again (a mapper that was down or restarted gets what it
+    the mapper listed nothing new for as long, or when a mapper comes back after it was gone, are
+    sent again (a mapper that was down or restarted gets what it
     missed; 0 = never); ``unacked_memory_keyframes``: of those, held in memory (the others wait in
     a private folder on disk)."""
 
