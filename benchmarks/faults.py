@@ -251,8 +251,7 @@ def exp_node_kill(work: Path, args) -> dict:
                     os.kill(pid, signal.SIGKILL)
                     while time.monotonic() < t_kill + 120:
                         new = _node_pids(mark).get(victim)
-                        if new not in (None, pid) and any(k.startswith(name) and v > t_kill + 0.5
-                                                          for k, v in lis.heard.items()):
+                        if new not in (None, pid) and lis.heard.get(f"vings/{name}", 0.0) > t_kill + 0.5:
                             break
                         time.sleep(0.2)
                     rec["recover_s"] = round(time.monotonic() - t_kill, 1)
