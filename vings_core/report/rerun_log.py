@@ -2,7 +2,8 @@
 
 The rerun SDK is an optional extra (``pip install .[viz]``), imported only when a log is asked for;
 without it :class:`RerunLog` raises a :class:`~vings_core.errors.ConfigError` saying how to install
-it. Entities (world frame ``world``, the run's units; RDF-free: the camera is the optical frame):
+it. Entities (world frame ``world`` in the run's units; the camera in the optical convention,
+x right, y down, z forward):
 
 =====================================  ======================================  ===============
 entity                                 archetype                               logged
