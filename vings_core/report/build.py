@@ -61,6 +61,11 @@ class RunData:
         return bool(self.run.get("metric", self.metrics.get("scale_observable") or False))
 
     @property
+    def path(self) -> Trajectory:
+        """The path the views are laid out on: the keyframes, else the tracked frames."""
+        return self.keyframes if len(self.keyframes) else self.traj
+
+    @property
     def gravity_aligned(self) -> bool:
         return bool(self.run.get("gravity_aligned", self.metrics.get("vi_state") == "visual-inertial"))
 
@@ -110,7 +115,7 @@ def load_run(folder: str | Path, gt: Optional[Trajectory] = None, metrics: Optio
 def compute_bev(folder: Path, data: RunData, size_px: int = 1024) -> Optional[BevImage]:
     """The bird's-eye view from ``map.ply`` over the run's keyframe (else frame) path."""
     ply = folder / "map.ply"
-    path = data.keyframes if len(data.keyframes) else data.traj
+    path = data.path
     if not ply.is_file():
         return None
     s = surfels_from_ply(ply)
@@ -185,7 +190,7 @@ def _trajectory(d: RunData, bev: Optional[BevImage]) -> H.Section:
     sec = H.Section("trajectory", "Trajectory")
     if len(d.traj) == 0:
         return sec.note("no tracked frames")
-    path = d.keyframes if len(d.keyframes) else d.traj
+    path = d.path
     basis = bev.basis if bev is not None else view_basis(path.poses, d.gravity_aligned)
     al = aligned_ground_truth(d.traj, d.gt)
     unit = "m" if d.metric else "run units"
@@ -291,8 +296,8 @@ def _loops(d: RunData) -> H.Section:
     reasons: dict[str, int] = {}
     for c in cands:
         if c.get("verdict") != "accepted":
-            key = str(c.get("reason", "")).split(" ")[0:3]
-            reasons[" ".join(key)] = reasons.get(" ".join(key), 0) + 1
+            key = " ".join(str(c.get("reason", "")).split(" ")[:3])
+            reasons[key] = reasons.get(key, 0) + 1
     if reasons:
         sec.add(H.table(sorted(reasons.items(), key=lambda kv: -kv[1]), ("refusal (first words)", "candidates")))
     return sec
