@@ -842,6 +842,21 @@ def test_bad_checkpoint_and_bad_keyframes_give_clear_errors(tmp_path, room_small
         m.set_keyframe_poses({12345: np.eye(4)})
 
 
+def test_a_late_keyframe_is_mapped_in_stamp_order(tmp_path, room_small):
+    """A keyframe older than the newest one (sent again after a mapper restart) is added to the
+    training window; the keyframe list stays in stamp order, also through a checkpoint."""
+    cam, frames = room_small
+    m = Mapper(MapperConfig(points_per_keyframe=200))
+    m.add_keyframe(frames[0])
+    m.add_keyframe(frames[2])
+    info = m.add_keyframe(frames[1])
+    assert info["stamp_ns"] == frames[1].stamp_ns
+    assert list(m.keyframe_poses()) == [frames[i].stamp_ns for i in range(3)]
+    assert frames[1].stamp_ns in [kf.stamp_ns for kf in m.state.window]
+    m.save_checkpoint(tmp_path / "late.npz")
+    assert list(Mapper.load_checkpoint(tmp_path / "late.npz").keyframe_poses()) == [f.stamp_ns for f in frames[:3]]
+
+
 def test_bad_keyframe_content_is_refused_before_any_change(room_small):
     """Images outside [0, 1] (8-bit, 0..255), non-finite pixels, mis-shaped depth / variance /
     validity, negative variance: clear errors, nothing of the keyframe kept (it can be re-sent

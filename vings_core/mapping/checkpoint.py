@@ -6,7 +6,7 @@ Version 7 (:data:`CHECKPOINT_VERSION`, written) holds the entries
 * ``meta``: JSON (``version``, ``config``, ``camera``, ``render_count``, ``kf_count``, the training
   and refinement rounds ``queue`` / ``rqueue``, the score ``slots``, ``window`` size, ``counters``);
 * ``active/<field>``: the active Gaussians (:data:`~.gaussians.ALL_FIELDS`); ``rng_state``;
-* ``kf/stamps`` (K,) int64 and ``kf/T_wc`` (K, 4, 4) float64 camera-to-world, in insertion order;
+* ``kf/stamps`` (K,) int64 and ``kf/T_wc`` (K, 4, 4) float64 camera-to-world, in stamp order;
 * ``win<i>/{stamp, index, image, T_wc, depth, inv_depth_var, valid, dynamic, loss_map}``: window
   keyframes (``dynamic``: the eraser's mask, ``(0, 0)`` when the keyframe has none);
 * ``pose_adam/{stamps, m, v, steps, v_shared}`` and ``pose_gn/{stamps, steps}``: refinement state;
@@ -212,7 +212,7 @@ def _restore(m: "Mapper", z: "Entries", meta: dict, path: Path) -> None:
         return gm
     st.gm = _check_sh(GaussianMap.from_numpy({k: z[f"active/{k}"] for k in ALL_FIELDS}, st.device))
     stamps = z["kf/stamps"]
-    st.order = [int(s) for s in stamps]
+    st.order = sorted(int(s) for s in stamps)
     st.poses = {int(s): np.array(T) for s, T in zip(stamps, z["kf/T_wc"])}
     st.camera = CameraModel.from_dict(meta["camera"]) if meta["camera"] else None
     _restore_window(m, z, int(meta["window"]))

@@ -25,19 +25,15 @@ from .state import MapState
 from ..profiling import profiled
 
 
-def check_keyframe(kf: Keyframe, known: dict[int, object], last_stamp: Optional[int],
-                   camera: Optional[CameraModel]) -> None:
-    """Raise :class:`InputError` unless ``kf`` can be added: a new stamp (not in ``known``) not
-    older than ``last_stamp``, an undistorted camera equal to ``camera`` (the first keyframe's; None
-    before it), float RGB in [0, 1], depth / variance / validity of the image's size, finite depth,
-    non-negative variance and a rigid ``T_wc``."""
+def check_keyframe(kf: Keyframe, known: dict[int, object], camera: Optional[CameraModel]) -> None:
+    """Raise :class:`InputError` unless ``kf`` can be added: a new stamp (not in ``known``; an older
+    stamp than the newest known is fine: a keyframe sent again after a mapper restart), an
+    undistorted camera equal to ``camera`` (the first keyframe's; None before it), float RGB in
+    [0, 1], depth / variance / validity of the image's size, finite depth, non-negative variance and a rigid ``T_wc``."""
     if not isinstance(kf, Keyframe):
         raise InputError(f"add_keyframe: expected a Keyframe, got {type(kf).__name__}")
     if int(kf.stamp_ns) in known:
         raise InputError(f"add_keyframe: keyframe {kf.stamp_ns} was already added")
-    if last_stamp is not None and int(kf.stamp_ns) < last_stamp:
-        raise InputError(f"add_keyframe: keyframe {kf.stamp_ns} is older than the last one "
-                         f"({last_stamp}); keyframes must arrive in time order")
     what = f"add_keyframe {kf.stamp_ns}"
     if kf.camera.is_distorted:
         raise InputError(f"{what}: camera has lens distortion; undistort first")

@@ -20,6 +20,7 @@ over Gaussians or pixels in Python.
 """
 from __future__ import annotations
 
+import bisect
 import itertools
 import os
 import time
@@ -143,7 +144,7 @@ class Mapper:
         pixels). Returns counts."""
         t0 = time.perf_counter()
         st, cfg = self.state, self.cfg
-        check_keyframe(kf, st.poses, st.order[-1] if st.order else None, st.camera)
+        check_keyframe(kf, st.poses, st.camera)
         if st.camera is None:
             st.camera = kf.camera          # only once the first keyframe is known to be good
         T_ok = torch.from_numpy(check_rigid_pose(kf.T_wc, f"keyframe {kf.stamp_ns} T_wc", tol=1e-2, project=True))
@@ -152,7 +153,7 @@ class Mapper:
                      valid=kf.valid.to(torch.bool))
         s = int(kf.stamp_ns)
         st.poses[s] = kf.T_wc.numpy().copy()
-        st.order.append(s)
+        bisect.insort(st.order, s)      # stamp order; a late (re-sent) keyframe in its place
         st.window.append(kf)
         left = None
         if len(st.window) > cfg.window_size:

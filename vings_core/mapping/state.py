@@ -40,7 +40,7 @@ class MapState:
     background: torch.Tensor             # (3,) float32 RGB in [0, 1]
     window: list[Keyframe] = field(default_factory=list)
     poses: dict[int, np.ndarray] = field(default_factory=dict)    # stamp -> T_wc of every keyframe
-    order: list[int] = field(default_factory=list)                # keyframe stamps in insertion order
+    order: list[int] = field(default_factory=list)                # keyframe stamps, in stamp order
     camera: Optional[CameraModel] = None
     render_count: int = 0                # training renders so far (score clock)
     kf_count: int = 0
