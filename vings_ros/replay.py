@@ -25,7 +25,8 @@ by republishing the header of every image it has finished with (processed or del
     self._processed.publish(image_msg.header)
 
 The replay waits at start for that publisher, raises :class:`GraphTimeout` if no acknowledgement
-comes within ``ack_timeout_s`` or the acknowledging publisher disappears, and otherwise publishes
+comes within ``ack_timeout_s`` or the acknowledging publisher disappears for longer than
+``respawn_wait_s`` (when it comes back, the image it lost is published again), and otherwise publishes
 every frame, so nothing is dropped however slow the graph is. Pacing is re-anchored at every
 image that goes out more than 20 ms late, so a slow graph (or slow decoding) slows the replay
 without bursts afterwards: an image goes out at max(previous image + its period / rate,
@@ -73,6 +74,7 @@ class ReplayOptions:
     wait_subscribers: bool = True
     startup_timeout_s: float = 30.0
     ack_timeout_s: float = 60.0
+    respawn_wait_s: float = 30.0    # with wait_for_graph: how long to wait for a front end that went away
     loop: bool = False
     loop_shift: bool = False    # with loop: every pass's stamps come after the previous pass's
     start_s: float = 0.0
@@ -99,6 +101,8 @@ class ReplayOptions:
         if not (self.ack_timeout_s > 0 and self.startup_timeout_s >= 0):   # NaN fails both
             raise ConfigError(f"--ack-timeout must be > 0 and --startup-timeout >= 0, got "
                               f"{self.ack_timeout_s} and {self.startup_timeout_s}")
+        if not (self.respawn_wait_s >= 0 and math.isfinite(self.respawn_wait_s)):
+            raise ConfigError(f"--respawn-wait must be a finite number of seconds >= 0, got {self.respawn_wait_s}")
         unknown = set(self.topics) - set(T.REPLAY_TOPICS)
         if unknown:
             raise ConfigError(f"--topics: unknown key(s) {sorted(unknown)}; known: "
@@ -160,6 +164,7 @@ class ReplayStats:
     ack_wait_mean_ms: Optional[float] = None
     ack_wait_max_ms: Optional[float] = None
     startup_wait_s: float = 0.0
+    respawns: int = 0               # front ends that went away and came back (image sent again)
     interrupted: bool = False
 
     def as_dict(self) -> dict:
@@ -176,6 +181,8 @@ class ReplayStats:
         if self.acks:
             s += (f"; {self.acks} acks, wait mean {self.ack_wait_mean_ms:.1f} ms, max "
                   f"{self.ack_wait_max_ms:.1f} ms")
+        if self.respawns:
+            s += f"; the front end came back {self.respawns} time(s)"
         return s
 
 
@@ -316,7 +323,11 @@ class Replayer:
             self._spin_for(0.02)
         self.stats.startup_wait_s = time.monotonic() - t0
 
-    def _wait_ack(self, stamp_ns: int) -> None:
+    def _wait_ack(self, frame: Frame) -> None:
+        """Wait for the acknowledgement of ``frame``. A front end that goes away (its
+        acknowledgement publisher is gone) is waited for ``respawn_wait_s`` (``vings launch``
+        respawns it); when it is back the frame is published again, as the one it lost."""
+        stamp_ns = frame.stamp_ns
         t0 = time.monotonic()
         deadline = t0 + self.opt.ack_timeout_s
         next_check = t0 + 1.0
@@ -331,12 +342,34 @@ class Replayer:
             if now >= next_check:
                 next_check = now + 1.0
                 if self.sub_ack.get_publisher_count() < 1:
-                    raise GraphTimeout(f"the publisher of {self.opt.topics['processed']} "
-                                       f"went away while waiting for image {stamp_ns} (did the "
-                                       f"front-end node die?)")
+                    self._wait_respawn(frame)
+                    deadline = time.monotonic() + self.opt.ack_timeout_s
             self._spin_for(min(deadline - now, 0.05))
         self._ack_waits.append(time.monotonic() - t0)
         self.stats.acks += 1
+
+    def _wait_respawn(self, frame: Frame) -> None:
+        """The front end went away while ``frame`` waited: wait for one to come back (with the
+        image subscription too), then publish the frame again. Raises :class:`GraphTimeout` after
+        ``respawn_wait_s``."""
+        stamp_ns, topic = frame.stamp_ns, self.opt.topics["processed"]
+        t0 = time.monotonic()
+        if self.opt.respawn_wait_s > 0:
+            self._print(f"replay: the front end went away while image {stamp_ns} waited (nothing publishes "
+                        f"{topic}); waiting up to {self.opt.respawn_wait_s:g} s for it to come back")
+        while (self.sub_ack.get_publisher_count() < 1 or self.pub_image.get_subscription_count() < 1) \
+                and time.monotonic() - t0 < self.opt.respawn_wait_s:
+            self._spin_for(0.1)
+        if self.sub_ack.get_publisher_count() < 1 or self.pub_image.get_subscription_count() < 1:
+            raise GraphTimeout(f"the publisher of {topic} went away while waiting for image {stamp_ns} "
+                               f"(did the front-end node die?)"
+                               + (f"; it did not come back within {self.opt.respawn_wait_s:g} s"
+                                  if self.opt.respawn_wait_s > 0 else ""))
+        self._spin_for(0.5)         # its subscriptions match ours before the image goes out
+        self.stats.respawns += 1
+        self._print(f"replay: the front end is back after {time.monotonic() - t0:.1f} s; image {stamp_ns} "
+                    f"published again")
+        self._publish_frame(frame)
 
     # ------------------------------------------------------------------------------ publish
     def _print(self, line: str) -> None:
@@ -433,7 +466,7 @@ class Replayer:
                 if self.on_image is not None:
                     self.on_image(stamp)
                 if self.opt.wait_for_graph:
-                    self._wait_ack(stamp)
+                    self._wait_ack(item)
                 elif rate == 0 and n_img_pass % 10 == 0:
                     self._spin_for(0.0)
             else:

@@ -328,6 +328,25 @@ class Frontend:
             self.win.after_change(None)
         self.stats["jumps"] += 1
 
+    def restarted(self, resume: bool, gap_s: float) -> None:
+        """This front end was restored from its checkpoint (:mod:`.checkpoint`) and the first new
+        frame comes ``gap_s`` seconds after the last one it holds. ``resume``: go on tracking (a
+        short gap). Otherwise the next frames are relocalised against the window's keyframes from
+        the last tracked pose (state ``lost``, no velocity prior): one that passes the tracking
+        checks continues the same world frame; after ``relocalize_frames`` failures a new map
+        segment starts, as after any loss. The outcome is in the events and in
+        ``stats["relocalisations"]`` / ``stats["segments"]``."""
+        what = f"restarted from the checkpoint, {gap_s:.2f} s after its last frame"
+        if resume or self.state != TrackState.TRACKING:
+            self.events.append(what + (": tracking goes on" if self.state == TrackState.TRACKING else ""))
+            return
+        self.motion.chain = None            # the flow chain of the frame before the gap is stale
+        self.motion.prev = None             # predict the last pose, not a velocity over the gap
+        self.state = TrackState.LOST
+        self._fails = 0
+        self.reason = what + ": relocalising against the window's keyframes"
+        self.events.append(self.reason)
+
     def status(self) -> dict:
         """State, reason and counters (plain data, for logs and diagnostics)."""
         vi = self.vio.status() if self.vio is not None else {"vi_state": "visual-only"}

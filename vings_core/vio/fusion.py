@@ -67,6 +67,17 @@ class ImuBuffer:
         self.count = 0
         self._cache: Optional[ImuArrays] = None
 
+    def __getstate__(self) -> dict:
+        """Pickled without its lock (a front-end checkpoint)."""
+        with self._lock:
+            d = dict(self.__dict__)
+        del d["_lock"]
+        return d
+
+    def __setstate__(self, d: dict) -> None:
+        self.__dict__.update(d)
+        self._lock = threading.Lock()
+
     @property
     def td_ns(self) -> int:
         """Camera-IMU offset in use (ns): ``t_imu = t_cam + td``."""

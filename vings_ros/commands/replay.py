@@ -26,6 +26,10 @@ def register(subparsers) -> None:
                    help="back-pressure: wait for the front end's acknowledgement of every image")
     p.add_argument("--ack-timeout", type=float, default=60.0, metavar="S",
                    help="seconds to wait for one acknowledgement before failing (default 60)")
+    p.add_argument("--respawn-wait", type=float, default=30.0, metavar="S",
+                   help="with --wait-for-graph: seconds to wait for a front end that went away (vings "
+                   "launch respawns it) before failing; the image it lost is sent again (default 30; "
+                   "0: fail at once)")
     p.add_argument("--startup-timeout", type=float, default=30.0, metavar="S",
                    help="seconds to wait at start for subscribers (default 30; with --wait-for-graph "
                    "not finding them is an error, otherwise a warning)")
@@ -70,6 +74,7 @@ def run(args: argparse.Namespace) -> int:
     opts = ReplayOptions(rate=args.rate, topics=parse_topics(args.topics),
                          wait_for_graph=args.wait_for_graph, wait_subscribers=not args.no_wait,
                          startup_timeout_s=args.startup_timeout, ack_timeout_s=args.ack_timeout,
+                         respawn_wait_s=args.respawn_wait,
                          loop=args.loop, loop_shift=args.loop_shift, start_s=args.start, duration_s=args.duration,
                          imu_lead_s=args.imu_lead,
                          publish_clock=not args.no_clock, publish_log=args.publish_log)
