@@ -30,6 +30,8 @@ from msg_adapters.pose import estimate_to_odometry, path_to_trajectory, trajecto
 from msg_adapters.stamps import header_ns
 from vings_core.errors import InputError
 from vings_core.frontend import Frontend, FrontendConfig
+from vings_core.frontend.checkpoint import (FrontendCheckpoint, RestartMode, load_frontend_checkpoint,
+                                            restart_policy, save_frontend_checkpoint)
 from vings_core.frontend.flow import make_flow_estimator
 from vings_core.io.calib_yaml import is_rectified_topic, load_calibration_yaml
 from vings_core.io.undistort import Undistorter
@@ -118,8 +120,20 @@ class FrontendNode(StageNode):
         self._mapper_up: Optional[bool] = None     # None: never seen; False: seen, then gone
         self._next_ack_check = 0.0
         self._last_refined = time.monotonic()
+        self._refined_seen = False      # the mapper's (latched) keyframe list heard since the start
         self.sub_refined = self.create_subscription(Path, T.REFINED_KEYFRAMES_TOPIC, self._on_refined,
                                                     T.latched_qos(1))
+        # a restart: the checkpoint's front end, decided on at the first new image (RestartMode)
+        self.restart = RestartMode.FRESH
+        self.restart_gap_s: Optional[float] = None
+        self.restart_outcome = ""
+        self._restored: Optional[FrontendCheckpoint] = None
+        self._resend_restored = False
+        self._kf_since_ckpt = 0
+        self._finished = False
+        resume = self.resume_file()
+        if resume is not None:
+            self._restore(load_frontend_checkpoint(resume, self.fcfg, self._flow), resume)
 
     def ready_message(self) -> str:
         return (f"front end ready (queue policy {self.settings.queue_policy.value}); waiting for "
@@ -140,6 +154,7 @@ class FrontendNode(StageNode):
         with self._unacked_lock:
             self.unacked.acknowledged(stamps)
             self._last_refined = time.monotonic()
+            self._refined_seen = True
 
     def _resend_unacked(self) -> None:
         """Send again the keyframes the mapper has not acknowledged, when a mapper (re)appeared, or
@@ -153,6 +168,9 @@ class FrontendNode(StageNode):
         up = self.count_publishers(T.REFINED_KEYFRAMES_TOPIC) > 0
         # a mapper that came back after it was gone (the first one to appear gets the keyframes anyway)
         appeared = up and self._mapper_up is False
+        if self._resend_restored and up and (self._refined_seen or now - self._last_refined > 5.0):
+            # restored from the checkpoint: what the mapper has not listed by now is sent again
+            appeared, self._resend_restored = True, False
         if up or self._mapper_up is not None:
             self._mapper_up = up
         with self._unacked_lock:
@@ -166,7 +184,7 @@ class FrontendNode(StageNode):
             self._publish_parts(kf)
         self.keyframes_resent += len(kfs)
         self.get_logger().info(f"sent {len(kfs)} keyframe(s) again that the mapper had not acknowledged"
-                               + (" (a mapper appeared)" if appeared else f" within {self.settings.resend_after_s:g} s"))
+                               + (" (a mapper appeared, or the front end restarted)" if appeared else f" within {self.settings.resend_after_s:g} s"))
 
     def _on_camera_info(self, msg: CameraInfo) -> None:
         if self.settings.calib_file:
@@ -258,6 +276,88 @@ class FrontendNode(StageNode):
         self._camera_ready.set()
         self.get_logger().info(f"camera {raw.width}x{raw.height} -> working {cam.width}x{cam.height}")
 
+    # ------------------------------------------------------------------------------ checkpoint
+
+    def _restore(self, ck: FrontendCheckpoint, path) -> None:
+        """The checkpoint's front end, pose keeper, camera and unacknowledged keyframes; what to do
+        with them is decided at the first new image (:meth:`_first_after_restore`)."""
+        raw = ck.extra.get("raw_camera")
+        if raw is None:
+            raise InputError(f"{path}: the front-end checkpoint has no camera")
+        self.raw_camera = CameraModel.from_dict(raw)
+        self.undist = Undistorter(self.raw_camera, self.settings.width or None, self.settings.height or None,
+                                  undistort=True)
+        if self.undist.camera != ck.frontend.camera:
+            raise InputError(f"{path}: the checkpoint's working camera differs from frontend_node.width/"
+                             f"height now; start without it (move the file away) or set the same size")
+        self.frontend = ck.frontend
+        self.keeper = ck.state["keeper"]
+        self.keeper.cfg = self.xcfg
+        for kf in ck.extra.get("unacked", []):
+            self.unacked.sent(kf, 0.0)
+        self._resend_restored = len(self.unacked) > 0
+        self._restored = ck
+        self._last_stamp = ck.last_stamp_ns
+        self._camera_ready.set()
+        fe = ck.frontend
+        self.get_logger().info(
+            f"restored the front end from {path}: {fe.stats['frames']} frames, {len(fe.window)} keyframes in "
+            f"its window, state {fe.state}, last frame {ck.last_stamp_ns}; {len(self.unacked)} keyframe(s) "
+            f"the mapper had not acknowledged")
+
+    def _first_after_restore(self, stamp: int) -> None:
+        """The first image after a restore: go on (short gap), relocalise (long gap), or, for an
+        image not after the checkpoint's last frame (another recording), start afresh."""
+        ck, self._restored = self._restored, None
+        last = ck.last_stamp_ns
+        if last is not None and stamp <= last:
+            self.get_logger().warning(
+                f"image {stamp} is not after the checkpoint's last frame ({last}): another recording; "
+                f"the front end starts afresh (the checkpoint is overwritten)")
+            with self._unacked_lock:
+                self.unacked.close()
+                self.unacked = UnackedKeyframes(self.settings.unacked_memory_keyframes)
+            self._resend_restored = False
+            self._last_stamp = None
+            self._set_camera(self.raw_camera)
+            return
+        gap = (stamp - last) * 1e-9 if last is not None else 0.0
+        self.restart = restart_policy(gap, self.settings.resume_max_gap_s)
+        self.restart_gap_s = gap
+        self._restart_counts = (self.frontend.stats["relocalisations"], self.frontend.stats["segments"])
+        self.frontend.restarted(self.restart is RestartMode.RESUMED, gap)
+        self.get_logger().info(
+            f"restart: {self.restart.value} (the first image is {gap:.2f} s after the checkpoint's last "
+            f"frame; frontend_node.resume_max_gap_s {self.settings.resume_max_gap_s:g})")
+
+    def _restart_result(self) -> None:
+        """After a relocalising restart: relocalised (same world frame) or a new map segment."""
+        if self.restart is not RestartMode.RELOCALISING or self.restart_outcome:
+            return
+        reloc, seg = self._restart_counts
+        st = self.frontend.stats
+        if st["segments"] > seg:
+            self.restart_outcome = "new_segment"
+        elif st["relocalisations"] > reloc:
+            self.restart_outcome = "relocalised"
+        else:
+            return
+        self.get_logger().info(f"restart: {self.restart_outcome.replace('_', ' ')} ({self.frontend.reason})")
+
+    def checkpoint_ready(self) -> bool:
+        return self.frontend is not None and not self._finished and self._restored is None
+
+    def write_checkpoint(self, path) -> str:
+        with self._unacked_lock:
+            pending = self.unacked.pending()
+        size = save_frontend_checkpoint(
+            path, {"frontend": self.frontend, "keeper": self.keeper},
+            extra={"raw_camera": self.raw_camera.to_dict(), "unacked": pending})
+        self._kf_since_ckpt = 0
+        fe = self.frontend
+        return (f"{fe.stats['frames']} frames, {len(fe.window)} window keyframes, {len(pending)} unacknowledged, "
+                f"{size / 1e6:.1f} MB")
+
     # ----------------------------------------------------------------------------- the worker
 
     def _sim_time(self) -> bool:
@@ -283,7 +383,7 @@ class FrontendNode(StageNode):
                             + ("negative stamp" if stamp < 0 else "zero stamp on a live topic (the driver does not "
                                                                   "stamp its images; with a recording, use sim time)"))
             return
-        if self._last_stamp is not None and stamp <= self._last_stamp:
+        if self._last_stamp is not None and stamp <= self._last_stamp and self._restored is None:
             # a repeated stamp, a driver stamping 0, or a recording played again from its start:
             # tracking cannot go back in time, so such images are dropped (restart the node for
             # a new recording)
@@ -311,6 +411,8 @@ class FrontendNode(StageNode):
         finally:
             while self.decoder.warnings:    # 16-bit / float to 8-bit mapping notes (once each)
                 self.get_logger().warning(self.decoder.warnings.pop(0))
+        if self._restored is not None:
+            self._first_after_restore(stamp)
         frame = Frame(stamp, self.undist(frame.image), self.undist.camera)
         self._last_stamp = stamp
         self.bad_streak = 0
@@ -333,7 +435,15 @@ class FrontendNode(StageNode):
         kfs = self.frontend.pop_keyframes()
         self._exchange_send(stamp)
         self._publish_keyframes(kfs)
+        self._restart_result()
         self.rate.tick()
+        self.mark_changed()
+        self._kf_since_ckpt += len(kfs)
+        every = self.settings.checkpoint_every_keyframes
+        if every > 0 and self._kf_since_ckpt >= every and self.checkpoint_file is not None:
+            self.save_checkpoint(f"{len(kfs)} new keyframe(s)")
+        else:
+            self.maybe_checkpoint(idle=False)
         now = time.monotonic()
         if now - self._last_path_pub > 1.0:
             self._publish_path()
@@ -389,6 +499,8 @@ class FrontendNode(StageNode):
                   "dynamic_masks_late": self.frontend.stats.get("dynamic_masks_late", 0) if self.frontend else 0,
                   "bad_dynamic_masks": self.bad_masks,
                   "keyframes_unacknowledged": len(self.unacked), "keyframes_resent": self.keyframes_resent,
+                  "restart": self.restart.value, "restart_outcome": self.restart_outcome,
+                  "restart_gap_s": self.restart_gap_s if self.restart_gap_s is not None else "",
                   **self._vi_values(st),
                   **self._exchange_values()}
         if st.get("vi_error"):
@@ -449,7 +561,11 @@ class FrontendNode(StageNode):
     # -------------------------------------------------------------------------------- shutdown
 
     def finish(self) -> None:
-        """After the worker: flush the keyframes still in the window to the mapper."""
+        """After the worker: the checkpoint (the window as it is, so a restart tracks on), then flush
+        the keyframes still in the window to the mapper."""
+        if self.checkpoint_file is not None and self.error is None and self.checkpoint_ready():
+            self.save_checkpoint("shutdown")
+        self._finished = True
         if self.frontend is not None and self.error is None:
             self._exchange_receive()
             kfs = self.frontend.finish()

@@ -77,47 +77,6 @@ class RosConfig:
 
 
 @dataclass
-class FrontendNodeConfig(RespawnSettings):
-    """``frontend_node`` settings (params section ``frontend_node``).
-
-    ``queue_policy`` / ``queue_size``: the image queue (:class:`QueuePolicy`; ``keep_newest`` holds
-    one image). ``calib_file``: calibration YAML used instead of the camera_info topic.
-    ``calib_wait_s``: how long an image that arrived before any calibration is held.
-    ``width``/``height``: working resolution the images are resized/undistorted to (0 = as
-    published). ``path_max_poses``: poses in /vings/path. ``resend_after_s``: keyframes the mapper
-    has not acknowledged (listed on /vings/keyframes/refined) this long after they were sent while
-    the mapper listed nothing new for as long, or when a mapper comes back after it was gone, are
-    sent again (a mapper that was down or restarted gets what it
-    missed; 0 = never); ``unacked_memory_keyframes``: of those, held in memory (the others wait in
-    a private folder on disk)."""
-
-    queue_policy: QueuePolicy = QueuePolicy.KEEP_NEWEST
-    queue_size: int = 64
-    calib_file: str = ""
-    calib_wait_s: float = 2.0
-    width: int = 0
-    height: int = 0
-    path_max_poses: int = 10000
-    resend_after_s: float = 30.0
-    unacked_memory_keyframes: int = 8
-
-    def validate(self) -> None:
-        super().validate()
-        if self.resend_after_s < 0:
-            raise ValueError("resend_after_s must be >= 0")
-        if self.unacked_memory_keyframes < 1:
-            raise ValueError("unacked_memory_keyframes must be >= 1")
-        if self.queue_size < 1:
-            raise ValueError("queue_size must be >= 1")
-        if self.width < 0 or self.height < 0:
-            raise ValueError("width/height must be >= 0")
-        if self.calib_wait_s < 0:
-            raise ValueError("calib_wait_s must be >= 0")
-        if self.path_max_poses < 1:
-            raise ValueError("path_max_poses must be >= 1")
-
-
-@dataclass
 class CheckpointSettings:
     """Checkpointing of a node's state (vings_ros.node_base.StageNode checkpoint hooks).
 
@@ -136,6 +95,61 @@ class CheckpointSettings:
             validate()
         if self.checkpoint_period_s < 0:
             raise ValueError("checkpoint_period_s must be >= 0")
+
+
+@dataclass
+class FrontendNodeConfig(CheckpointSettings, RespawnSettings):
+    """``frontend_node`` settings (params section ``frontend_node``).
+
+    ``queue_policy`` / ``queue_size``: the image queue (:class:`QueuePolicy`; ``keep_newest`` holds
+    one image). ``calib_file``: calibration YAML used instead of the camera_info topic.
+    ``calib_wait_s``: how long an image that arrived before any calibration is held.
+    ``width``/``height``: working resolution the images are resized/undistorted to (0 = as
+    published). ``path_max_poses``: poses in /vings/path. ``resend_after_s``: keyframes the mapper
+    has not acknowledged (listed on /vings/keyframes/refined) this long after they were sent while
+    the mapper listed nothing new for as long, or when a mapper comes back after it was gone, are
+    sent again (a mapper that was down or restarted gets what it
+    missed; 0 = never); ``unacked_memory_keyframes``: of those, held in memory (the others wait in
+    a private folder on disk).
+
+    Checkpoint (:class:`CheckpointSettings`; ``vings launch --checkpoint F`` sets ``F.frontend``):
+    the window, every frame's pose, the motion model, the smoother and the keyframes the mapper
+    has not acknowledged, written after every ``checkpoint_every_keyframes`` new keyframes (0 =
+    only periodically and at the stop). A restarted node loads it; its first image goes on
+    tracking when it comes at most ``resume_max_gap_s`` after the checkpoint's last frame, else it is
+    relocalised against the checkpoint's window (a new map segment if that fails); an image not
+    after the checkpoint's last frame (another recording) starts a fresh front end."""
+
+    queue_policy: QueuePolicy = QueuePolicy.KEEP_NEWEST
+    queue_size: int = 64
+    calib_file: str = ""
+    calib_wait_s: float = 2.0
+    width: int = 0
+    height: int = 0
+    path_max_poses: int = 10000
+    resend_after_s: float = 30.0
+    unacked_memory_keyframes: int = 8
+    checkpoint_every_keyframes: int = 1
+    resume_max_gap_s: float = 1.0
+
+    def validate(self) -> None:
+        super().validate()
+        if self.checkpoint_every_keyframes < 0:
+            raise ValueError("checkpoint_every_keyframes must be >= 0")
+        if not self.resume_max_gap_s >= 0:
+            raise ValueError(f"resume_max_gap_s must be >= 0, got {self.resume_max_gap_s}")
+        if self.resend_after_s < 0:
+            raise ValueError("resend_after_s must be >= 0")
+        if self.unacked_memory_keyframes < 1:
+            raise ValueError("unacked_memory_keyframes must be >= 1")
+        if self.queue_size < 1:
+            raise ValueError("queue_size must be >= 1")
+        if self.width < 0 or self.height < 0:
+            raise ValueError("width/height must be >= 0")
+        if self.calib_wait_s < 0:
+            raise ValueError("calib_wait_s must be >= 0")
+        if self.path_max_poses < 1:
+            raise ValueError("path_max_poses must be >= 1")
 
 
 @dataclass

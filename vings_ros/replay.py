@@ -204,6 +204,7 @@ class Replayer:
         self.stats = ReplayStats()
         self._acked = -1 << 63
         self._ack_waits: list[float] = []
+        self._ack_gids: set[tuple] = set()      # the acknowledgement publishers seen
 
     # ------------------------------------------------------------------------------- set-up
     def _setup(self) -> None:
@@ -321,12 +322,24 @@ class Replayer:
         others = [self.pub_info] + ([self.pub_imu] if self._has_imu else [])
         while time.monotonic() < grace and any(p.get_subscription_count() < 1 for p in others):
             self._spin_for(0.02)
+        if self.sub_ack is not None:
+            self._ack_gids = self._ack_publishers()
         self.stats.startup_wait_s = time.monotonic() - t0
 
+    def _ack_publishers(self) -> set[tuple]:
+        """The endpoint ids of the acknowledgement publishers now (a restarted front end has a new
+        one; the dead one's may linger until discovery drops it)."""
+        try:
+            infos = self.node.get_publishers_info_by_topic(self.sub_ack.topic_name)
+        except Exception:  # noqa: BLE001 - graph queries fail only while shutting down
+            return set()
+        return {tuple(i.endpoint_gid) for i in infos}
+
     def _wait_ack(self, frame: Frame) -> None:
-        """Wait for the acknowledgement of ``frame``. A front end that goes away (its
-        acknowledgement publisher is gone) is waited for ``respawn_wait_s`` (``vings launch``
-        respawns it); when it is back the frame is published again, as the one it lost."""
+        """Wait for the acknowledgement of ``frame``. A front end that went away (its acknowledgement
+        publisher is gone) is waited for ``respawn_wait_s`` (``vings launch`` respawns it); a new
+        front end (a new acknowledgement publisher, seen once a second) gets the frame again, as
+        the one before lost it."""
         stamp_ns = frame.stamp_ns
         t0 = time.monotonic()
         deadline = t0 + self.opt.ack_timeout_s
@@ -341,9 +354,15 @@ class Replayer:
                     f"--ack-timeout if the graph is just slow")
             if now >= next_check:
                 next_check = now + 1.0
+                gids = self._ack_publishers()
                 if self.sub_ack.get_publisher_count() < 1:
                     self._wait_respawn(frame)
                     deadline = time.monotonic() + self.opt.ack_timeout_s
+                elif gids - self._ack_gids:
+                    self._resend(frame, "a new front end appeared", 0.0)
+                    deadline = time.monotonic() + self.opt.ack_timeout_s
+                else:
+                    self._ack_gids = gids
             self._spin_for(min(deadline - now, 0.05))
         self._ack_waits.append(time.monotonic() - t0)
         self.stats.acks += 1
@@ -365,10 +384,18 @@ class Replayer:
                                f"(did the front-end node die?)"
                                + (f"; it did not come back within {self.opt.respawn_wait_s:g} s"
                                   if self.opt.respawn_wait_s > 0 else ""))
+        self._resend(frame, "the front end is back", time.monotonic() - t0)
+
+    def _resend(self, frame: Frame, what: str, after_s: float) -> None:
+        """Publish ``frame`` again for a restarted front end, once its image subscription is there."""
+        t_end = time.monotonic() + 10.0
+        while self.pub_image.get_subscription_count() < 1 and time.monotonic() < t_end:
+            self._spin_for(0.1)
         self._spin_for(0.5)         # its subscriptions match ours before the image goes out
         self.stats.respawns += 1
-        self._print(f"replay: the front end is back after {time.monotonic() - t0:.1f} s; image {stamp_ns} "
-                    f"published again")
+        self._print(f"replay: {what}" + (f" after {after_s:.1f} s" if after_s else "")
+                    + f"; image {frame.stamp_ns} published again")
+        self._ack_gids = self._ack_publishers()
         self._publish_frame(frame)
 
     # ------------------------------------------------------------------------------ publish

@@ -26,7 +26,8 @@ def register(subparsers) -> None:
     p.add_argument("--checkpoint", metavar="FILE",
                    help="mapper checkpoint: resumed from at start if it exists, written periodically "
                         "and on shutdown (overrides mapper_node.checkpoint_path); the loop closer's "
-                        "database goes beside it as FILE.loop (loop_closer_node.checkpoint_path)")
+                        "database goes beside it as FILE.loop (loop_closer_node.checkpoint_path), the "
+                        "front end's window and poses as FILE.frontend (frontend_node.checkpoint_path)")
     p.add_argument("--no-mapper", action="store_true", help="leave the mapper out (front end alone)")
     p.add_argument("--no-loop", action="store_true",
                    help="leave the loop closer out (loop.enabled false: no loop closure, no retrain)")
@@ -62,6 +63,8 @@ def run(args: argparse.Namespace) -> int:
         extra["loop.enabled"] = "false"
     if args.no_eraser:
         extra["eraser.enabled"] = "false"
+    if args.checkpoint:
+        extra.setdefault("frontend_node.checkpoint_path", str(Path(args.checkpoint).resolve()) + ".frontend")
     if args.checkpoint and not args.no_loop:
         extra.setdefault("loop_closer_node.checkpoint_path", str(Path(args.checkpoint).resolve()) + ".loop")
     left_out = {n for n, off in (("mapper_node", args.no_mapper), ("loop_closer_node", args.no_loop),
