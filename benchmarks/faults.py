@@ -11,11 +11,13 @@ Experiments (``--exp``, comma list):
   emitted vs keyframes in the checkpoint plus those stored beside it (target equal); then the mapper
   is started again on the checkpoint: seconds until every stored keyframe is mapped.
 * ``node_kill``: for each of ``--nodes`` (default: mapper_node, eraser_node, loop_closer_node,
-  frontend_node), ``kill -9`` of that node at a random moment (after 2-8 keyframes) of a replay
-  (back-pressure, a checkpoint): seconds until it is back (respawned, its /diagnostics heard
-  again); keyframes emitted vs in the final checkpoint (the graph is stopped once the mapper has
-  mapped every emitted keyframe, or after ``--timeout``); ATE Sim(3) of the checkpoint's keyframes,
-  to compare with the fault-free run's.
+  frontend_node), ``kill -9`` of that node at a random moment (after 20-70 % of the frames, drawn
+  per trial) of a replay (back-pressure, ``--checkpoint``) of ``--scene`` (default a street loop
+  with moving objects, ``--frames`` long): seconds until it is back (respawned, its /diagnostics
+  heard again; for the front end also its ``restart`` mode and outcome); keyframes emitted vs in
+  the final checkpoint (the graph is stopped once the mapper has mapped every emitted keyframe, or
+  after ``--timeout``); ATE Sim(3) of the checkpoint's keyframes and of the odometry heard,
+  against the fault-free run's.
 
 The last stdout line is one JSON object keyed by experiment (``benchmarks/_harness.py``).
 """
@@ -103,12 +105,22 @@ class _Listener:
         self.emitted: set[int] = set()
         self.mapped: set[int] = set()
         self.heard: dict[str, float] = {}
+        self.values: dict[str, dict] = {}       # the latest diagnostics values per status name
+        self.odom: dict[int, object] = {}       # stamp -> T_wc of /vings/odometry
         st = lambda h: h.stamp.sec * 1_000_000_000 + h.stamp.nanosec  # noqa: E731
         self.node.create_subscription(PoseStamped, T.KEYFRAME_POSE_TOPIC, lambda m: self.emitted.add(st(m.header)),
                                       T.sensor_qos(200))
         self.node.create_subscription(PathMsg, T.REFINED_KEYFRAMES_TOPIC,
                                       lambda m: self.mapped.update(st(p.header) for p in m.poses), T.latched_qos(1))
         self.node.create_subscription(DiagnosticArray, T.DIAGNOSTICS_TOPIC, self._diag, T.sensor_qos(50))
+        from nav_msgs.msg import Odometry
+
+        from msg_adapters.pose import odometry_to_estimate
+
+        def odom(m):
+            e = odometry_to_estimate(m, T.ODOMETRY_TOPIC)
+            self.odom[int(e.stamp_ns)] = e.T_wc
+        self.node.create_subscription(Odometry, T.ODOMETRY_TOPIC, odom, T.sensor_qos(500))
         self._stop = threading.Event()
         self._th = threading.Thread(target=self._spin, daemon=True)
         self._th.start()
@@ -116,6 +128,7 @@ class _Listener:
     def _diag(self, msg) -> None:
         for s in msg.status:
             self.heard[s.name] = time.monotonic()
+            self.values[s.name] = {kv.key: kv.value for kv in s.values}
 
     def _spin(self) -> None:
         from rclpy.executors import SingleThreadedExecutor
@@ -132,11 +145,17 @@ class _Listener:
         self.rclpy.shutdown()
 
 
-def _sim(work: Path, frames: int) -> Path:
+def _sim(work: Path, frames: int, scene: str = "room") -> Path:
+    """The replayed recording: a synthetic room of ``frames`` frames, or (``street``) a street loop
+    with moving objects, about ``frames`` frames long at 10 Hz (4 m/s: 0.4 m per frame)."""
     from vings_core.sim import generate
-    d = work / f"room_{frames}"
-    if not (d / "room.mcap").exists():
-        generate("room", d, frames=frames, seed=0)
+    d = work / f"{scene}_{frames}"
+    if not (d / "sim.json").exists():
+        if scene == "street":
+            generate("street", d, seed=0, dynamic=True, loop=True, fps=10.0,
+                     length_m=max(50.0, 0.4 * frames))
+        else:
+            generate("room", d, frames=frames, seed=0)
     return next(d.glob("*.mcap"))
 
 
@@ -220,67 +239,94 @@ def exp_node_kill(work: Path, args) -> dict:
     from vings_core.io import open_source
     from vings_core.mapping import Mapper
     from vings_core.types import Trajectory
-    mcap = _sim(work, args.frames)
+    mcap = _sim(work, args.frames, args.scene)
     gt = open_source(str(mcap)).gt_camera_trajectory()
+    n_frames = len(gt)
+    names = {"frontend_node": "vings/frontend", "mapper_node": "vings/mapper", "loop_closer_node": "vings/loop_closer",
+             "eraser_node": "vings/eraser"}
     out = {}
     for victim in ["none"] + [n for n in args.nodes.split(",") if n]:
         for trial in range(args.trials if victim != "none" else 1):
             tag = f"{victim}_{trial}"
-            ck = work / "node_kill" / tag / "map.ckpt"
-            ck.parent.mkdir(parents=True, exist_ok=True)
+            d = work / "node_kill" / tag
+            d.mkdir(parents=True, exist_ok=True)
+            for f in d.glob("map.ckpt*"):
+                if f.is_file():
+                    f.unlink()
+            ck = d / "map.ckpt"
             mark = f"nk{os.getpid()}{tag}"
             lis = _Listener(args.domain)
-            p = _launch(args.domain, mark, [f"mapping.iters_per_keyframe={args.iters}"], ck,
-                        work / "node_kill" / tag / "launch.log")
+            t0 = time.monotonic()
+            p = _launch(args.domain, mark, [f"mapping.iters_per_keyframe={args.iters}"], ck, d / "launch.log")
             env = dict(os.environ, PYTHONPATH=str(REPO))
             rep = subprocess.Popen([sys.executable, "-m", "vings_ros.cli", "replay", str(mcap), "--wait-for-graph",
-                                    "--ack-timeout", "120", "--domain-id", str(args.domain)], env=env,
-                                   stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+                                    "--ack-timeout", "300", "--respawn-wait", "120", "--domain-id", str(args.domain)],
+                                   env=env, stdout=(d / "replay.log").open("w"), stderr=subprocess.STDOUT)
             rec = {}
             if victim != "none":
-                # a random moment: after 2-8 keyframes were emitted
-                after = random.Random(trial).randint(2, 8)
+                # a random moment: after 20-70 % of the frames were tracked
+                after = int(n_frames * random.Random(f"{victim}{trial}").uniform(0.2, 0.7))
                 t_end = time.monotonic() + args.timeout
-                while len(lis.emitted) < after and rep.poll() is None and time.monotonic() < t_end:
+                while len(lis.odom) < after and rep.poll() is None and time.monotonic() < t_end:
                     time.sleep(0.1)
                 pid = _node_pids(mark).get(victim)
                 if pid is not None and rep.poll() is None:
-                    name = {"frontend_node": "frontend", "mapper_node": "mapper", "loop_closer_node": "loop_closer",
-                            "eraser_node": "eraser"}[victim]
+                    rec["killed_after_frames"] = len(lis.odom)
                     t_kill = time.monotonic()
                     os.kill(pid, signal.SIGKILL)
-                    while time.monotonic() < t_kill + 120:
+                    while time.monotonic() < t_kill + 300:
                         new = _node_pids(mark).get(victim)
-                        if new not in (None, pid) and lis.heard.get(f"vings/{name}", 0.0) > t_kill + 0.5:
+                        if new not in (None, pid) and lis.heard.get(names[victim], 0.0) > t_kill + 0.5:
                             break
                         time.sleep(0.2)
                     rec["recover_s"] = round(time.monotonic() - t_kill, 1)
-            rep.wait(args.timeout)
+                else:
+                    rec["not_killed"] = "the replay ended first" if rep.poll() is not None else f"no {victim} process"
+            rc = rep.wait(args.timeout)
+            rec["replay_rc"] = rc
             # the mapper maps everything before the stop (the fault-free and faulty runs alike)
             t_end = time.monotonic() + args.timeout
             while not (set(lis.emitted) <= lis.mapped) and time.monotonic() < t_end:
                 time.sleep(0.5)
+            fe = lis.values.get("vings/frontend", {})
+            if victim == "frontend_node":
+                rec.update(restart=fe.get("restart"), restart_outcome=fe.get("restart_outcome"),
+                           restart_gap_s=fe.get("restart_gap_s"))
+            rec["segments"] = int(fe.get("segment", "0")) + 1 if fe.get("segment", "").isdigit() else None
             os.killpg(p.pid, signal.SIGINT)
-            p.wait(300)
+            p.wait(600)
+            rec["wall_s"] = round(time.monotonic() - t0, 1)
             emitted = set(lis.emitted)
+            odom = dict(lis.odom)
             lis.close()
             kfs = Mapper.load_checkpoint(ck).keyframe_poses() if ck.exists() else {}
             stored = {int(f.stem.split("-")[2]) for f in (ck.parent / (ck.name + ".queue")).glob("kf-*.pt")}
-            rec.update(emitted=len(emitted), in_checkpoint=len(emitted & set(kfs)), stored=len(emitted & stored))
-            if len(kfs) >= 3:
-                try:
-                    rec["kf_ate_sim3_m"] = evaluate_trajectory(Trajectory.from_poses(kfs), gt)["ate_sim3_m"]
-                except Exception as e:  # noqa: BLE001 - reported
-                    rec["kf_ate_error"] = str(e)
+            rec.update(emitted=len(emitted), in_checkpoint=len(emitted & set(kfs)), stored=len(emitted & stored),
+                       odometry=len(odom))
+            for what, poses in (("kf", kfs), ("odom", odom)):
+                if len(poses) >= 3:
+                    try:
+                        rec[f"{what}_ate_sim3_m"] = evaluate_trajectory(Trajectory.from_poses(poses), gt)["ate_sim3_m"]
+                    except Exception as e:  # noqa: BLE001 - reported
+                        rec[f"{what}_ate_error"] = str(e)
             out[tag] = rec
             _log(tag, json.dumps(rec))
+    base = out.get("none_0", {})
+    for tag, rec in out.items():
+        for what in ("kf", "odom"):
+            a, b = rec.get(f"{what}_ate_sim3_m"), base.get(f"{what}_ate_sim3_m")
+            if tag != "none_0" and a is not None and b:
+                rec[f"{what}_ate_vs_fault_free"] = round(a / b - 1.0, 3)
     return out
 
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--exp", default="launcher_kill,ctrl_c")
-    ap.add_argument("--frames", type=int, default=120, help="synthetic room frames for ctrl_c / node_kill")
+    ap.add_argument("--frames", type=int, default=120, help="frames of the replayed recording (ctrl_c: a room; "
+                    "node_kill: --scene)")
+    ap.add_argument("--scene", choices=("street", "room"), default="street",
+                    help="node_kill: a street loop with moving objects (10 Hz) or the room")
     ap.add_argument("--iters", type=int, default=150, help="mapping.iters_per_keyframe (a slow mapper)")
     ap.add_argument("--behind", type=int, default=8, help="ctrl_c: stop when the mapper is this far behind")
     ap.add_argument("--nodes", default="mapper_node,eraser_node,loop_closer_node,frontend_node")

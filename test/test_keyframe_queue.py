@@ -200,3 +200,23 @@ def test_unacked_keyframes_hold_until_the_mapper_lists_them(tmp_path):
     assert not u.overdue(now=21.0, timeout_s=5.0)
     assert u.acknowledged([10, 20, 30, 40, 50]) == 3 and len(u) == 0 and u.released == 5
     u.close()
+
+
+def test_unacked_keyframes_kept_on_disk_come_back_after_a_crash(tmp_path):
+    from vings_core.keyframe_queue import UnackedKeyframes
+    keep = tmp_path / "fe.ckpt.unacked"
+    u = UnackedKeyframes(memory_keyframes=1, keep_dir=keep)
+    for i in range(4):
+        u.sent(_kf((i + 1) * 10), now=float(i))
+    assert u.acknowledged([10, 20]) == 2
+    assert sorted(f.name for f in keep.glob("*.pt")) == ["kf-30.pt", "kf-40.pt"]
+    # the process dies without closing; a new one finds what was not acknowledged
+    (keep / "kf-5.pt").write_bytes(b"torn")         # a damaged file is dropped, not fatal
+    v = UnackedKeyframes(memory_keyframes=1, keep_dir=keep)
+    back = v.restore()
+    assert [int(k.stamp_ns) for k in back] == [30, 40] and len(v) == 2
+    assert _same(back[0], _kf(30))
+    assert v.overdue(now=1.0, timeout_s=0.5)        # held as sent long ago: due for a re-send
+    v.discard()
+    assert len(v) == 0 and not list(keep.glob("*.pt"))
+    v.close()

@@ -339,13 +339,39 @@ class UnackedKeyframes:
     were released); ``pending()``: the unacknowledged keyframes, oldest first (they stay held);
     ``overdue(now, timeout_s)``: whether the oldest waited longer than ``timeout_s``. Stamps are
     released in the order they were sent (the mapper maps in that order); a stamp acknowledged
-    out of order is remembered until the older ones are released. One thread."""
+    out of order is remembered until the older ones are released. One thread.
 
-    def __init__(self, memory_keyframes: int = 8, spill_dir: Optional[str | os.PathLike] = None) -> None:
+    ``keep_dir``: every keyframe held is also written there (``kf-<stamp>.pt``, the spill format,
+    written atomically) until it is acknowledged, so that a front end restarted after a crash gets
+    them back with :meth:`restore`."""
+
+    def __init__(self, memory_keyframes: int = 8, spill_dir: Optional[str | os.PathLike] = None,
+                 keep_dir: Optional[str | os.PathLike] = None) -> None:
         self._q = KeyframeQueue(memory_keyframes, spill_dir)
         self._order: collections.deque = collections.deque()     # (stamp, time sent)
         self._acked: set[int] = set()
         self.released = 0
+        self.keep_dir = Path(keep_dir) if keep_dir is not None else None
+
+    def _kept(self, stamp: int) -> Path:
+        return self.keep_dir / f"kf-{int(stamp)}.pt"
+
+    def restore(self) -> list[Keyframe]:
+        """The keyframes ``keep_dir`` holds (left by a process that held them), oldest first, held
+        again as sent at time 0; unreadable files are removed and skipped."""
+        if self.keep_dir is None or not self.keep_dir.is_dir():
+            return []
+        out = []
+        for f in sorted(self.keep_dir.glob("kf-*.pt"), key=lambda f: int(f.stem.split("-")[1])):
+            try:
+                kf = keyframe_from_dict(torch.load(f, weights_only=True), str(f))
+            except Exception:  # noqa: BLE001 - a torn or foreign file (any unpickling error)
+                f.unlink(missing_ok=True)
+                continue
+            self._q.put("kf", kf)
+            self._order.append((int(kf.stamp_ns), 0.0))
+            out.append(kf)
+        return out
 
     def __len__(self) -> int:
         return len(self._order)
@@ -356,13 +382,21 @@ class UnackedKeyframes:
             return                      # sent again (a re-send): held once
         self._q.put("kf", kf)
         self._order.append((s, float(now)))
+        if self.keep_dir is not None:
+            self.keep_dir.mkdir(parents=True, exist_ok=True)
+            path = self._kept(s)
+            tmp = path.with_name(f".{path.name}.tmp")
+            torch.save(keyframe_to_dict(kf), tmp)
+            os.replace(tmp, path)
 
     def acknowledged(self, stamps) -> int:
         self._acked.update(int(s) for s in stamps)
         n = 0
         while self._order and self._order[0][0] in self._acked:
             self._q.get(0)
-            self._order.popleft()
+            s, _ = self._order.popleft()
+            if self.keep_dir is not None:
+                self._kept(s).unlink(missing_ok=True)
             n += 1
         oldest = self._order[0][0] if self._order else None
         # acknowledgements older than what is still held can no longer matter
@@ -388,5 +422,10 @@ class UnackedKeyframes:
         """Count the waiting time of what is held from ``now`` (after a re-send)."""
         self._order = collections.deque((s, float(now)) for s, _ in self._order)
 
+    def discard(self) -> None:
+        """Forget every keyframe held (they belong to another run), ``keep_dir``'s files too."""
+        self.acknowledged([s for s, _ in self._order])
+
     def close(self) -> None:
+        """Free the memory and the private spill folder (``keep_dir`` stays: the next process)."""
         self._q.close()

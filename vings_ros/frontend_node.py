@@ -114,7 +114,7 @@ class FrontendNode(StageNode):
         self.pub_ack = self.create_publisher(Header, T.PROCESSED_TOPIC, sq(T.ACK_DEPTH))
         self._last_path_pub = 0.0
         # keyframes until the mapper lists them (sent again to a mapper that missed them)
-        self.unacked = UnackedKeyframes(self.settings.unacked_memory_keyframes)
+        self.unacked = self._new_unacked()
         self._unacked_lock = threading.Lock()
         self.keyframes_resent = 0
         self._mapper_up: Optional[bool] = None     # None: never seen; False: seen, then gone
@@ -129,11 +129,17 @@ class FrontendNode(StageNode):
         self.restart_outcome = ""
         self._restored: Optional[FrontendCheckpoint] = None
         self._resend_restored = False
-        self._kf_since_ckpt = 0
+        self._ckpt_stamp: Optional[int] = None      # the last frame of the last checkpoint
         self._finished = False
         resume = self.resume_file()
         if resume is not None:
             self._restore(load_frontend_checkpoint(resume, self.fcfg, self._flow), resume)
+
+    def _new_unacked(self) -> UnackedKeyframes:
+        """With a checkpoint, the unacknowledged keyframes are also kept in ``<checkpoint>.unacked/``
+        (a restarted front end sends them again)."""
+        keep = f"{self.checkpoint_file}.unacked" if self.checkpoint_file is not None else None
+        return UnackedKeyframes(self.settings.unacked_memory_keyframes, keep_dir=keep)
 
     def ready_message(self) -> str:
         return (f"front end ready (queue policy {self.settings.queue_policy.value}); waiting for "
@@ -293,9 +299,7 @@ class FrontendNode(StageNode):
         self.frontend = ck.frontend
         self.keeper = ck.state["keeper"]
         self.keeper.cfg = self.xcfg
-        for kf in ck.extra.get("unacked", []):
-            self.unacked.sent(kf, 0.0)
-        self._resend_restored = len(self.unacked) > 0
+        self._resend_restored = len(self.unacked.restore()) > 0
         self._restored = ck
         self._last_stamp = ck.last_stamp_ns
         self._camera_ready.set()
@@ -315,8 +319,9 @@ class FrontendNode(StageNode):
                 f"image {stamp} is not after the checkpoint's last frame ({last}): another recording; "
                 f"the front end starts afresh (the checkpoint is overwritten)")
             with self._unacked_lock:
+                self.unacked.discard()      # none of them belongs to this recording
                 self.unacked.close()
-                self.unacked = UnackedKeyframes(self.settings.unacked_memory_keyframes)
+                self.unacked = self._new_unacked()
             self._resend_restored = False
             self._last_stamp = None
             self._set_camera(self.raw_camera)
@@ -348,15 +353,11 @@ class FrontendNode(StageNode):
         return self.frontend is not None and not self._finished and self._restored is None
 
     def write_checkpoint(self, path) -> str:
-        with self._unacked_lock:
-            pending = self.unacked.pending()
-        size = save_frontend_checkpoint(
-            path, {"frontend": self.frontend, "keeper": self.keeper},
-            extra={"raw_camera": self.raw_camera.to_dict(), "unacked": pending})
-        self._kf_since_ckpt = 0
+        size = save_frontend_checkpoint(path, {"frontend": self.frontend, "keeper": self.keeper},
+                                        extra={"raw_camera": self.raw_camera.to_dict()})
         fe = self.frontend
-        return (f"{fe.stats['frames']} frames, {len(fe.window)} window keyframes, {len(pending)} unacknowledged, "
-                f"{size / 1e6:.1f} MB")
+        self._ckpt_stamp = fe._last_stamp
+        return f"{fe.stats['frames']} frames, {len(fe.window)} window keyframes, {size / 1e6:.1f} MB"
 
     # ----------------------------------------------------------------------------- the worker
 
@@ -438,10 +439,10 @@ class FrontendNode(StageNode):
         self._restart_result()
         self.rate.tick()
         self.mark_changed()
-        self._kf_since_ckpt += len(kfs)
-        every = self.settings.checkpoint_every_keyframes
-        if every > 0 and self._kf_since_ckpt >= every and self.checkpoint_file is not None:
-            self.save_checkpoint(f"{len(kfs)} new keyframe(s)")
+        every = self.settings.checkpoint_every_s
+        if (kfs and every > 0 and self.checkpoint_file is not None and self.checkpoint_ready()
+                and (self._ckpt_stamp is None or (stamp - self._ckpt_stamp) * 1e-9 >= every)):
+            self.save_checkpoint(f"keyframe {kfs[-1].stamp_ns}")
         else:
             self.maybe_checkpoint(idle=False)
         now = time.monotonic()

@@ -113,9 +113,10 @@ class FrontendNodeConfig(CheckpointSettings, RespawnSettings):
     a private folder on disk).
 
     Checkpoint (:class:`CheckpointSettings`; ``vings launch --checkpoint F`` sets ``F.frontend``):
-    the window, every frame's pose, the motion model, the smoother and the keyframes the mapper
-    has not acknowledged, written after every ``checkpoint_every_keyframes`` new keyframes (0 =
-    only periodically and at the stop). A restarted node loads it; its first image goes on
+    the window, every frame's pose, the motion model and the smoother, written at the first new
+    keyframe ``checkpoint_every_s`` (sensor time) after the last checkpoint's frame (0 = only
+    every ``checkpoint_period_s`` of wall time and at the stop); the keyframes the mapper has not
+    acknowledged wait in ``F.frontend.unacked/``. A restarted node loads it; its first image goes on
     tracking when it comes at most ``resume_max_gap_s`` after the checkpoint's last frame, else it is
     relocalised against the checkpoint's window (a new map segment if that fails); an image not
     after the checkpoint's last frame (another recording) starts a fresh front end."""
@@ -129,13 +130,13 @@ class FrontendNodeConfig(CheckpointSettings, RespawnSettings):
     path_max_poses: int = 10000
     resend_after_s: float = 30.0
     unacked_memory_keyframes: int = 8
-    checkpoint_every_keyframes: int = 1
+    checkpoint_every_s: float = 0.5
     resume_max_gap_s: float = 1.0
 
     def validate(self) -> None:
         super().validate()
-        if self.checkpoint_every_keyframes < 0:
-            raise ValueError("checkpoint_every_keyframes must be >= 0")
+        if not self.checkpoint_every_s >= 0:
+            raise ValueError(f"checkpoint_every_s must be >= 0, got {self.checkpoint_every_s}")
         if not self.resume_max_gap_s >= 0:
             raise ValueError(f"resume_max_gap_s must be >= 0, got {self.resume_max_gap_s}")
         if self.resend_after_s < 0:
