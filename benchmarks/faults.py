@@ -145,17 +145,18 @@ class _Listener:
         self.rclpy.shutdown()
 
 
-def _sim(work: Path, frames: int, scene: str = "room") -> Path:
+def _sim(work: Path, frames: int, scene: str = "room", size: tuple[int, int] = (376, 240)) -> Path:
     """The replayed recording: a synthetic room of ``frames`` frames, or (``street``) a street loop
-    with moving objects, about ``frames`` frames long at 10 Hz (4 m/s: 0.4 m per frame)."""
+    with moving objects, about ``frames`` frames long at 10 Hz (4 m/s: 0.4 m per frame), at
+    ``size`` (width, height)."""
     from vings_core.sim import generate
-    d = work / f"{scene}_{frames}"
+    d = work / (f"{scene}_{frames}" + ("" if size == (376, 240) else f"_{size[0]}x{size[1]}"))
     if not (d / "sim.json").exists():
         if scene == "street":
             generate("street", d, seed=0, dynamic=True, loop=True, fps=10.0,
-                     length_m=max(50.0, 0.4 * frames))
+                     length_m=max(50.0, 0.4 * frames), width=size[0], height=size[1])
         else:
-            generate("room", d, frames=frames, seed=0)
+            generate("room", d, frames=frames, seed=0, width=size[0], height=size[1])
     return next(d.glob("*.mcap"))
 
 
@@ -239,7 +240,7 @@ def exp_node_kill(work: Path, args) -> dict:
     from vings_core.io import open_source
     from vings_core.mapping import Mapper
     from vings_core.types import Trajectory
-    mcap = _sim(work, args.frames, args.scene)
+    mcap = _sim(work, args.frames, args.scene, tuple(int(v) for v in args.size.split("x")))
     gt = open_source(str(mcap)).gt_camera_trajectory()
     n_frames = len(gt)
     names = {"frontend_node": "vings/frontend", "mapper_node": "vings/mapper", "loop_closer_node": "vings/loop_closer",
@@ -327,6 +328,7 @@ def main() -> int:
                     "node_kill: --scene)")
     ap.add_argument("--scene", choices=("street", "room"), default="street",
                     help="node_kill: a street loop with moving objects (10 Hz) or the room")
+    ap.add_argument("--size", default="376x240", help="node_kill: image size WxH of the recording")
     ap.add_argument("--iters", type=int, default=150, help="mapping.iters_per_keyframe (a slow mapper)")
     ap.add_argument("--behind", type=int, default=8, help="ctrl_c: stop when the mapper is this far behind")
     ap.add_argument("--nodes", default="mapper_node,eraser_node,loop_closer_node,frontend_node")

@@ -492,7 +492,7 @@ class FrontendNode(StageNode):
                   "queue_length": len(self.queue), "queue_policy": self.queue.policy,
                   "frames_dropped": self.queue.dropped, "frames_received": self.queue.received,
                   "bad_frames": self.bad_frames, "bad_streak": self.bad_streak,
-                  "camera_changes": self.camera_changes,
+                  "camera_changes": self.camera_changes, "bad_camera_infos": self.bad_camera_infos,
                   "imu_samples": self.imu_count, "bad_imu": self.bad_imu,
                   "late_poses": self.late_poses,
                   "dynamic_masks_received": self.masks_received,
@@ -557,7 +557,9 @@ class FrontendNode(StageNode):
         return {"writeback_policy": self.xcfg.mapper,
                 "corrections_received": st.get("corrections", 0),
                 "corrections_applied": st.get("applied", 0),
-                "corrections_rejected": st.get("rejected", 0)}
+                "corrections_rejected": st.get("rejected", 0),
+                "corrections_unknown_stamps": st.get("unknown_stamps", 0),
+                "bad_exchange_messages": self.inbox.bad}
 
     # -------------------------------------------------------------------------------- shutdown
 

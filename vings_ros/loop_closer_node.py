@@ -274,7 +274,7 @@ class LoopCloserNode(StageNode):
                   **self.render_client.diagnostic_values(), "bad_keyframe_parts": self.keyframes_in.bad,
                   "incomplete_packets": self.keyframes_in.assembler.pending,
                   "dropped_packets": self.keyframes_in.assembler.dropped,
-                  "checkpoints": self.checkpoints}
+                  "checkpoints": self.checkpoints, "bad_exchange_messages": self.inbox.bad}
         if not self.lcfg.enabled:
             return NodeStatus(Level.WARN, "loop closure off (loop.enabled false)", values)
         renders = self.render_client.counts

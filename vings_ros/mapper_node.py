@@ -420,7 +420,7 @@ class MapperNode(StageNode):
                   "masks_unused": self.masks_unused, "masks_refused": self.masks_refused,
                   "bad_masks": self.bad_masks,
                   "gaussians_erased_dynamic": int(self.mapper.state.counters.get("erased_dynamic", 0)),
-                  "gaussians_erased_late": self.erased_late}
+                  "gaussians_erased_late": self.erased_late, "bad_exchange_messages": self.inbox.bad}
         if self._mask_missing is not None:
             return NodeStatus(Level.WARN, f"{self.keyframes_without_mask} keyframe(s) mapped without a dynamic "
                                           f"mask: the eraser's mask did not come within eraser.mask_timeout_s = "

@@ -82,10 +82,12 @@ class NodeStatus:
 
 class BatchInbox:
     """Pose-exchange batches of ``sources`` (``/vings/exchange/<source>``), received on the executor
-    thread and taken by the worker (:meth:`take`); a malformed one is reported and skipped."""
+    thread and taken by the worker (:meth:`take`); a malformed one is reported, counted (``bad``)
+    and skipped."""
 
     def __init__(self, node: Node, sources: Iterable[str]) -> None:
         self._node = node
+        self.bad = 0
         self._items: list[IncrementBatch] = []
         self._lock = threading.Lock()
         qos = T.sensor_qos(T.POSE_EXCHANGE_DEPTH)
@@ -96,7 +98,9 @@ class BatchInbox:
         try:
             batch = path_to_batch(msg, source)
         except InputError as e:
-            self._node.get_logger().warning(f"ignored a malformed pose-exchange message: {e}")
+            self.bad += 1
+            self._node.get_logger().warning(f"ignored a malformed pose-exchange message ({self.bad} so far): {e}",
+                                            throttle_duration_sec=5.0)
             return
         with self._lock:
             self._items.append(batch)

@@ -39,7 +39,7 @@ class PoseKeeper:
         self._version = 0                       # owner's kf_pose_version at the last outgoing()
         self._recheck: set[int] = set()
         self.stats = dict(corrections=0, applied=0, rejected=0, duplicates=0, jumps=0, tests=0, tests_failed=0,
-                          last_q=None, last_q_limit=None)
+                          unknown_stamps=0, last_q=None, last_q_limit=None)
 
     def keyframe_sent(self, stamp_ns: int, T_wc: np.ndarray) -> None:
         """A keyframe left with pose ``T_wc``: the followers start from it."""
@@ -57,6 +57,8 @@ class PoseKeeper:
             return {}
         self.acks[batch.source] = batch.seq
         incs = {s: C for s, C in batch.increments.items() if s in self.published}
+        # stamps of keyframes the keeper never sent (another run's, a forged message): ignored, counted
+        self.stats["unknown_stamps"] += len(batch.increments) - len(incs)
         if not incs:
             return {}
         self.stats["corrections"] += len(incs)
