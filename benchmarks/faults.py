@@ -19,6 +19,11 @@ Experiments (``--exp``, comma list):
   after ``--timeout``); ATE Sim(3) of the checkpoint's keyframes and of the odometry heard,
   against the fault-free run's.
 
+* ``bad_input``: the graph on a live clock, and malformed messages on every input topic (Image,
+  CameraInfo, Imu, dynamic masks, keyframe packets, pose-exchange corrections with unknown stamps
+  or NaN poses, render requests): per case, whether every node is still running and by how much
+  the receiving node's /diagnostics counter went up (target: 0 crashes, each counted).
+
 The last stdout line is one JSON object keyed by experiment (``benchmarks/_harness.py``).
 """
 from __future__ import annotations
@@ -75,9 +80,11 @@ def _node_pids(mark: str) -> dict[str, int]:
     return out
 
 
-def _launch(domain: int, mark: str, params: list[str], ckpt: Path | None, log: Path) -> subprocess.Popen:
-    cmd = [sys.executable, "-m", "vings_ros.cli", "launch", "--use-sim-time", "--backpressure",
-           "--domain-id", str(domain)]
+def _launch(domain: int, mark: str, params: list[str], ckpt: Path | None, log: Path,
+            sim_time: bool = True) -> subprocess.Popen:
+    cmd = [sys.executable, "-m", "vings_ros.cli", "launch", "--backpressure", "--domain-id", str(domain)]
+    if sim_time:
+        cmd.append("--use-sim-time")
     if ckpt is not None:
         cmd += ["--checkpoint", str(ckpt)]
     for p in params:
@@ -321,6 +328,179 @@ def exp_node_kill(work: Path, args) -> dict:
     return out
 
 
+def _bad_messages(stamp0: int) -> list[tuple[str, str, str, str, object]]:
+    """The bad-input cases: (case, topic, node status name, counter key, message). Stamps count up
+    from ``stamp0`` (a live clock: a valid image stamp)."""
+    import numpy as np
+    from geometry_msgs.msg import PoseStamped
+    from nav_msgs.msg import Path as PathMsg
+    from sensor_msgs.msg import CameraInfo, Image, Imu
+
+    from msg_adapters import topics as T
+    from msg_adapters.exchange import exchange_topic
+    from msg_adapters.keyframe import PART_TOPICS
+    from msg_adapters.loop import RENDER_REQUEST_TOPIC
+    from msg_adapters.stamps import make_header
+
+    n = [stamp0]
+
+    def hdr(frame="camera", stamp=None):
+        n[0] += 50_000_000
+        return make_header(n[0] if stamp is None else stamp, frame, "bench")
+
+    def image(enc="mono8", w=64, h=48, data=None, stamp=None):
+        m = Image(header=hdr(stamp=stamp), height=h, width=w, encoding=enc, step=w)
+        m.data = bytes(w * h) if data is None else data
+        return m
+
+    def imu(**kw):
+        m = Imu(header=hdr("imu"))
+        m.orientation_covariance[0] = -1.0
+        m.linear_acceleration.z = 9.81
+        for k, v in kw.items():
+            setattr(getattr(m, k.split(".")[0]), k.split(".")[1], v)
+        return m
+
+    def pose(x=0.0, qw=1.0, frame="map", stamp=None):
+        m = PoseStamped(header=hdr(frame, stamp))
+        m.pose.position.x, m.pose.orientation.w = x, qw
+        return m
+
+    def path(topic, poses, seq=None):
+        m = PathMsg(header=hdr("map", seq))
+        m.poses = poses
+        return m
+
+    from msg_adapters.camera_info import camera_to_camera_info
+    from msg_adapters.keyframe import keyframe_to_msgs
+    from vings_core.types import CameraModel, Keyframe
+    import torch
+
+    cam = CameraModel(64, 48, 50.0, 50.0, 31.5, 23.5)
+    cam_zero = CameraInfo(header=hdr(), width=64, height=48)
+    cam_nan = CameraInfo(header=hdr(), width=64, height=48)
+    cam_nan.k = [float("nan")] * 9
+    far = 10 ** 18 + 12345
+    rng = np.random.default_rng(0)
+
+    def good_image():
+        return image(data=rng.integers(0, 255, 64 * 48, dtype=np.uint8).tobytes())
+
+    def packet(k: int, broken: str):
+        """The five parts of a keyframe with part ``broken`` spoilt (stamp far from any real one)."""
+        kf = Keyframe(stamp_ns=far + 100 + k, image=torch.rand(48, 64, 3), T_wc=torch.eye(4, dtype=torch.float64),
+                      depth=torch.ones(48, 64), inv_depth_var=torch.ones(48, 64),
+                      valid=torch.ones(48, 64, dtype=torch.bool), camera=cam, index=k)
+        parts = keyframe_to_msgs(kf).as_dict()
+        if broken == "pose":
+            parts["pose"].pose.orientation.w = float("nan")
+        elif broken == "depth":
+            parts["depth"] = float_like(parts["depth"], 32, 24)
+        elif broken == "image":
+            parts["image"].encoding = "32FC1"
+        return [(PART_TOPICS[p], m) for p, m in parts.items()]
+
+    def float_like(m, w, h):
+        m.width, m.height, m.step = w, h, 4 * w
+        m.data = bytes(4 * w * h)
+        return m
+
+    FE, MP, LC, ER = "vings/frontend", "vings/mapper", "vings/loop_closer", "vings/eraser"
+    info = camera_to_camera_info(cam, n[0], "camera", T.CAMERA_INFO_TOPIC)
+    return [
+        ("CameraInfo with K = 0", T.CAMERA_INFO_TOPIC, FE, "bad_camera_infos", cam_zero),
+        ("CameraInfo with NaN in K", T.CAMERA_INFO_TOPIC, FE, "bad_camera_infos", cam_nan),
+        ("(a valid CameraInfo, so that images are decoded)", T.CAMERA_INFO_TOPIC, FE, None, info),
+        ("Image, unknown encoding", T.IMAGE_TOPIC, FE, "bad_frames", image("bogus8")),
+        ("Image, data shorter than step x height", T.IMAGE_TOPIC, FE, "bad_frames", image(data=bytes(100))),
+        ("Image, 0 x 0", T.IMAGE_TOPIC, FE, "bad_frames", image(w=0, h=0, data=b"")),
+        ("Image, another size than CameraInfo's", T.IMAGE_TOPIC, FE, "bad_frames", image(w=32, h=24)),
+        ("Image, negative stamp", T.IMAGE_TOPIC, FE, "bad_frames", image(stamp=-5)),
+        ("Image, zero stamp on a live topic", T.IMAGE_TOPIC, FE, "bad_frames", image(stamp=0)),
+        ("(a valid image)", T.IMAGE_TOPIC, FE, None, good_image()),
+        ("Image, stamp before the previous one", T.IMAGE_TOPIC, FE, "bad_frames", image(stamp=stamp0)),
+        ("Imu, NaN angular velocity", T.IMU_TOPIC, FE, "bad_imu", imu(**{"angular_velocity.x": float("nan")})),
+        ("Imu, infinite acceleration", T.IMU_TOPIC, FE, "bad_imu", imu(**{"linear_acceleration.y": float("inf")})),
+        ("dynamic mask, rgb8 instead of mono8", T.DYNAMIC_MASK_TOPIC, FE, "bad_dynamic_masks",
+         image("rgb8", 4, 4, bytes(48))),
+        ("dynamic mask, rgb8 (mapper)", T.DYNAMIC_MASK_TOPIC, MP, "bad_masks", image("rgb8", 4, 4, bytes(48))),
+        ("keyframe packet, NaN quaternion (mapper)", None, MP, "bad_keyframe_parts", packet(0, "pose")),
+        ("keyframe packet, NaN quaternion (loop closer)", None, LC, "bad_keyframe_parts", packet(1, "pose")),
+        ("keyframe packet, NaN quaternion (eraser)", None, ER, "bad_keyframe_parts", packet(2, "pose")),
+        ("keyframe packet, depth of another size (mapper)", None, MP, "bad_keyframe_parts", packet(3, "depth")),
+        ("keyframe packet, image as 32FC1 (mapper)", None, MP, "bad_keyframe_parts", packet(4, "image")),
+        # then a valid image: the front end reads the corrections before each frame
+        ("correction for stamps the front end never sent", None, FE, "corrections_unknown_stamps",
+         [(exchange_topic("mapper"), path("m", [pose(0.1, stamp=far), pose(0.2, stamp=far + 1)], seq=10 ** 9)),
+          (T.IMAGE_TOPIC, good_image())]),
+        ("correction with a NaN pose", exchange_topic("mapper"), FE, "bad_exchange_messages",
+         path("m", [pose(qw=float("nan"), stamp=far + 2)], seq=10 ** 9 + 1)),
+        ("keeper batch with a NaN pose (mapper)", exchange_topic("frontend"), MP, "bad_exchange_messages",
+         path("f", [pose(qw=float("nan"), stamp=far + 3)], seq=10 ** 9 + 2)),
+        ("render request, id 0", RENDER_REQUEST_TOPIC, MP, "bad_render_requests", pose(stamp=0)),
+        ("render request, unknown frame_id key", RENDER_REQUEST_TOPIC, MP, "bad_render_requests",
+         pose(frame="map;colour=1", stamp=7)),
+    ]
+
+
+def exp_bad_input(work: Path, args) -> dict:
+    """Malformed messages on every input topic of the running graph (live clock): 0 crashes, each
+    counted in the receiving node's /diagnostics."""
+    from msg_adapters import topics as T
+    mark = f"bi{os.getpid()}"
+    lis = _Listener(args.domain)
+    p = _launch(args.domain, mark, [], None, work / "bad_input.log", sim_time=False)
+    names = ("vings/frontend", "vings/mapper", "vings/loop_closer", "vings/eraser")
+    t_end = time.monotonic() + 120
+    while not all(n in lis.values for n in names) and time.monotonic() < t_end:
+        time.sleep(0.2)
+    pids = _node_pids(mark)
+    cases = _bad_messages(time.time_ns())
+    pubs = {}
+
+    def send(topic, msg) -> None:
+        if topic is None:                   # several messages (a keyframe packet's parts)
+            for t, m in msg:
+                send(t, m)
+                time.sleep(0.2)
+            return
+        if (topic, type(msg)) not in pubs:
+            pubs[(topic, type(msg))] = lis.node.create_publisher(type(msg), topic, T.sensor_qos(50))
+            time.sleep(2.0)                 # discovery of the new publisher
+        pubs[(topic, type(msg))].publish(msg)
+
+    rows = []
+    for case, topic, status, key, msg in cases:
+        before = _count(lis, status, key) if key else None
+        send(topic, msg)
+        if key is None:                     # a valid message the next cases rely on
+            time.sleep(1.0)
+            continue
+        t_end = time.monotonic() + 3 * float(os.environ.get("VINGS_DIAG_PERIOD", "1.0")) + 5
+        while (_count(lis, status, key) or 0) <= (before or 0) and time.monotonic() < t_end:
+            time.sleep(0.1)
+        after = _count(lis, status, key)
+        alive = {n: Path(f"/proc/{q}").exists() for n, q in pids.items()}
+        mtype = " + ".join(dict.fromkeys(type(m).__name__ for _, m in msg)) if topic is None else type(msg).__name__
+        rows.append({"case": case, "topic": topic or " + ".join(dict.fromkeys(t for t, _ in msg)), "type": mtype, "node": status,
+                     "counter": key, "counted": (after or 0) - (before or 0) if after is not None else None,
+                     "nodes_alive": sum(alive.values()), "of": len(alive)})
+        _log(json.dumps(rows[-1]))
+    os.killpg(p.pid, signal.SIGINT)
+    rc = p.wait(300)
+    lis.close()
+    return {"cases": rows, "crashes": sum(r["nodes_alive"] < r["of"] for r in rows),
+            "not_counted": [r["case"] for r in rows if not r["counted"]], "launch_rc": rc}
+
+
+def _count(lis: "_Listener", status: str, key: str):
+    v = lis.values.get(status, {}).get(key)
+    try:
+        return int(float(v)) if v is not None else None
+    except ValueError:
+        return None
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--exp", default="launcher_kill,ctrl_c")
@@ -338,7 +518,8 @@ def main() -> int:
     args = ap.parse_args()
     work = Path(os.environ.get("TMPDIR", tempfile.gettempdir())) / "vings_bench_faults"
     work.mkdir(parents=True, exist_ok=True)
-    fns = {"launcher_kill": exp_launcher_kill, "ctrl_c": exp_ctrl_c, "node_kill": exp_node_kill}
+    fns = {"launcher_kill": exp_launcher_kill, "ctrl_c": exp_ctrl_c, "node_kill": exp_node_kill,
+           "bad_input": exp_bad_input}
     names = [e.strip() for e in args.exp.split(",") if e.strip()]
     bad = [n for n in names if n not in fns]
     if bad:
