@@ -24,6 +24,11 @@ Experiments (``--exp``, comma list):
   or NaN poses, render requests): per case, whether every node is still running and by how much
   the receiving node's /diagnostics counter went up (target: 0 crashes, each counted).
 
+* ``hosts_apart``: the front end and the replay in one network namespace, the mapper in another
+  (a virtual Ethernet pair, ``ROS_AUTOMATIC_DISCOVERY_RANGE=SUBNET``), against both on one host:
+  keyframes emitted vs received by the mapper (its checkpoint plus those stored beside it), ATE
+  Sim(3) of the mapper's keyframes and of the front end's trajectory. Needs root and iproute2.
+
 The last stdout line is one JSON object keyed by experiment (``benchmarks/_harness.py``).
 """
 from __future__ import annotations
@@ -32,6 +37,7 @@ import argparse
 import json
 import os
 import random
+import shutil
 import signal
 import subprocess
 import sys
@@ -257,10 +263,8 @@ def exp_node_kill(work: Path, args) -> dict:
         for trial in range(args.trials if victim != "none" else 1):
             tag = f"{victim}_{trial}"
             d = work / "node_kill" / tag
-            d.mkdir(parents=True, exist_ok=True)
-            for f in d.glob("map.ckpt*"):
-                if f.is_file():
-                    f.unlink()
+            shutil.rmtree(d, ignore_errors=True)        # checkpoints and queues of an earlier run
+            d.mkdir(parents=True)
             ck = d / "map.ckpt"
             mark = f"nk{os.getpid()}{tag}"
             lis = _Listener(args.domain)
@@ -501,6 +505,98 @@ def _count(lis: "_Listener", status: str, key: str):
         return None
 
 
+class _TwoHosts:
+    """Two network namespaces joined by a virtual Ethernet pair (addresses made here) standing for
+    two hosts; removed on exit. Needs root and iproute2."""
+
+    def __init__(self) -> None:
+        k = os.getpid() % 200 + 20
+        self.a, self.b = f"vbench_a{k}", f"vbench_b{k}"
+        a, b = self.a, self.b
+        self.cmds = [f"ip netns add {a}", f"ip netns add {b}", f"ip link add vba{k} type veth peer name vbb{k}",
+                     f"ip link set vba{k} netns {a}", f"ip link set vbb{k} netns {b}",
+                     f"ip -n {a} addr add 10.232.{k}.1/24 dev vba{k}", f"ip -n {b} addr add 10.232.{k}.2/24 dev vbb{k}",
+                     f"ip -n {a} link set vba{k} up", f"ip -n {b} link set vbb{k} up",
+                     f"ip -n {a} link set lo up", f"ip -n {b} link set lo up",
+                     f"ip -n {a} route add 224.0.0.0/4 dev vba{k}", f"ip -n {b} route add 224.0.0.0/4 dev vbb{k}"]
+
+    def __enter__(self) -> "_TwoHosts":
+        for c in self.cmds:
+            r = subprocess.run(c.split(), capture_output=True, text=True)
+            if r.returncode != 0:
+                self.__exit__()
+                raise RuntimeError(f"cannot create network namespaces ({c}: {r.stderr.strip()})")
+        return self
+
+    def __exit__(self, *exc) -> None:
+        for ns in (self.a, self.b):
+            subprocess.run(["ip", "netns", "del", ns], capture_output=True)
+
+
+def exp_hosts_apart(work: Path, args) -> dict:
+    """The front end (and the replay) on one host, the mapper on another (network namespaces,
+    discovery over the subnet), against the same two on one host: keyframes the front end emitted
+    vs received by the mapper (in its checkpoint or stored beside it), keyframe ATE."""
+    from vings_core.eval.traj import evaluate_trajectory
+    from vings_core.frontend import DISFlow, FrontendConfig
+    from vings_core.frontend.checkpoint import load_frontend_checkpoint
+    from vings_core.io import open_source
+    from vings_core.mapping import Mapper
+    from vings_core.types import Trajectory
+    mcap = _sim(work, args.frames, "room", tuple(int(v) for v in args.size.split("x")))
+    gt = open_source(str(mcap)).gt_camera_trajectory()
+    out = {}
+    for how in ("same_host", "two_hosts"):
+        d = work / "hosts_apart" / how
+        shutil.rmtree(d, ignore_errors=True)
+        d.mkdir(parents=True)
+        ck = d / "map.ckpt"
+        common = ["--use-sim-time", "--backpressure", "--no-loop", "--no-eraser", "--checkpoint", str(ck),
+                  "--domain-id", str(args.domain), "-p", f"mapping.iters_per_keyframe={args.iters}"]
+        env = dict(os.environ, PYTHONPATH=str(REPO),
+                   ROS_AUTOMATIC_DISCOVERY_RANGE="SUBNET" if how == "two_hosts" else "LOCALHOST")
+        cli = [sys.executable, "-m", "vings_ros.cli"]
+        ctx = _TwoHosts() if how == "two_hosts" else None
+        try:
+            if ctx is not None:
+                ctx.__enter__()
+            na = ["ip", "netns", "exec", ctx.a] if ctx else []
+            nb = ["ip", "netns", "exec", ctx.b] if ctx else []
+            t0 = time.monotonic()
+            mapper = subprocess.Popen(nb + cli + ["launch", "--nodes", "mapper_node"] + common, env=env,
+                                      stdout=(d / "mapper.log").open("w"), stderr=subprocess.STDOUT,
+                                      start_new_session=True)
+            front = subprocess.Popen(na + cli + ["launch", "--nodes", "frontend_node"] + common, env=env,
+                                     stdout=(d / "frontend.log").open("w"), stderr=subprocess.STDOUT,
+                                     start_new_session=True)
+            rep = subprocess.run(na + cli + ["replay", str(mcap), "--wait-for-graph", "--domain-id", str(args.domain)],
+                                 env=env, capture_output=True, text=True, timeout=args.timeout)
+            time.sleep(2.0)
+            os.killpg(front.pid, signal.SIGINT)          # the front end flushes its window to the mapper
+            front.wait(300)
+            time.sleep(args.settle)
+            os.killpg(mapper.pid, signal.SIGINT)         # on_stop store: what is queued waits beside the checkpoint
+            mapper.wait(600)
+            wall = time.monotonic() - t0
+        finally:
+            if ctx is not None:
+                ctx.__exit__()
+        fe = load_frontend_checkpoint(f"{ck}.frontend", FrontendConfig(), DISFlow()).frontend
+        emitted = set(int(s) for s in fe.keyframe_trajectory().stamps_ns)
+        kfs = Mapper.load_checkpoint(ck).keyframe_poses() if ck.exists() else {}
+        stored = {int(f.stem.split("-")[2]) for f in (ck.parent / (ck.name + ".queue")).glob("kf-*.pt")}
+        rec = {"replay_rc": rep.returncode, "emitted": len(emitted), "mapped": len(emitted & set(kfs)),
+               "stored": len(emitted & stored), "missing": len(emitted - set(kfs) - stored),
+               "wall_s": round(wall, 1)}
+        if len(kfs) >= 3:
+            rec["kf_ate_sim3_m"] = evaluate_trajectory(Trajectory.from_poses(kfs), gt)["ate_sim3_m"]
+        traj = fe.trajectory()
+        rec["frontend_ate_sim3_m"] = evaluate_trajectory(traj, gt)["ate_sim3_m"] if len(traj) >= 3 else None
+        out[how] = rec
+        _log(how, json.dumps(rec))
+    return out
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--exp", default="launcher_kill,ctrl_c")
@@ -508,7 +604,9 @@ def main() -> int:
                     "node_kill: --scene)")
     ap.add_argument("--scene", choices=("street", "room"), default="street",
                     help="node_kill: a street loop with moving objects (10 Hz) or the room")
-    ap.add_argument("--size", default="376x240", help="node_kill: image size WxH of the recording")
+    ap.add_argument("--size", default="376x240", help="node_kill, hosts_apart: image size WxH of the recording")
+    ap.add_argument("--settle", type=float, default=20.0,
+                    help="hosts_apart: seconds the mapper gets after the front end stopped")
     ap.add_argument("--iters", type=int, default=150, help="mapping.iters_per_keyframe (a slow mapper)")
     ap.add_argument("--behind", type=int, default=8, help="ctrl_c: stop when the mapper is this far behind")
     ap.add_argument("--nodes", default="mapper_node,eraser_node,loop_closer_node,frontend_node")
@@ -519,7 +617,7 @@ def main() -> int:
     work = Path(os.environ.get("TMPDIR", tempfile.gettempdir())) / "vings_bench_faults"
     work.mkdir(parents=True, exist_ok=True)
     fns = {"launcher_kill": exp_launcher_kill, "ctrl_c": exp_ctrl_c, "node_kill": exp_node_kill,
-           "bad_input": exp_bad_input}
+           "bad_input": exp_bad_input, "hosts_apart": exp_hosts_apart}
     names = [e.strip() for e in args.exp.split(",") if e.strip()]
     bad = [n for n in names if n not in fns]
     if bad:

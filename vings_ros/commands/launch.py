@@ -38,6 +38,9 @@ def register(subparsers) -> None:
                    help="front end queue policy 'backpressure' (use with `vings replay --wait-for-graph`)")
     p.add_argument("--no-imu", action="store_true",
                    help="visual-only front end: do not fuse the IMU (vio.enabled false)")
+    p.add_argument("--nodes", metavar="NAME,...",
+                   help="start only these nodes (registry names, e.g. mapper_node on a second host; "
+                        "default: frontend_node, mapper_node, loop_closer_node, eraser_node)")
     p.add_argument("-p", "--param", action="append", default=[], metavar="SECTION.KEY=VALUE",
                    help="override one parameter of every node, e.g. -p mapping.iters_per_keyframe=20")
     p.set_defaults(func=run)
@@ -70,6 +73,15 @@ def run(args: argparse.Namespace) -> int:
     left_out = {n for n, off in (("mapper_node", args.no_mapper), ("loop_closer_node", args.no_loop),
                                  ("eraser_node", args.no_eraser)) if off}
     nodes = tuple(n for n in default_nodes() if n not in left_out) if left_out else None
+    if args.nodes:
+        nodes = tuple(n.strip() for n in args.nodes.split(",") if n.strip() and n.strip() not in left_out)
+        if not nodes:
+            raise ConfigError(f"--nodes {args.nodes!r}: no node left to start")
+        from .. import registry
+        known = [n.name for n in registry.NODES]
+        bad = [n for n in nodes if n not in known]
+        if bad:
+            raise ConfigError(f"--nodes: unknown node(s) {', '.join(bad)}; known: {', '.join(known)}")
     opt = LaunchOptions(params_file=args.params or str(default_params_file()), record=args.record, rerun=args.rerun,
                         use_sim_time=args.use_sim_time, domain_id=args.domain_id,
                         checkpoint=args.checkpoint, extra_params=extra, nodes=nodes)
