@@ -380,3 +380,13 @@ def test_keeper_carries_its_owners_own_similarity_to_the_followers():
     assert set(batch.increments) == {7}
     assert np.allclose(batch.increments[7], C)      # the scale travels, not a rigid stand-in
     assert keeper.outgoing() is None                # sent once
+
+
+def test_keeper_counts_and_ignores_corrections_for_stamps_it_never_sent():
+    rng, keeper, _, (fe, _, _) = _graph(n=3)
+    before = {s: fe.pose(s) for s in fe.poses}
+    C = _shift(rng, 0.1)
+    got = keeper.receive(IncrementBatch("mapper", 1, {10 ** 12: C, 10 ** 12 + 1: C, 2: C}, {}))
+    assert set(got) == {2} and keeper.stats["unknown_stamps"] == 2
+    assert np.allclose(fe.pose(2), sim3_apply_to_pose(C, before[2]))
+    assert all(np.array_equal(fe.pose(s), before[s]) for s in (1, 3))

@@ -244,3 +244,12 @@ def test_launcher_exit_policy_continue_and_stop(tmp_path):
     out, err = p.communicate(timeout=60)
     assert "rc 1" in out and "eraser_node exited with code -9; the graph goes on without it" in err
     assert "loop_closer_node exited with code -9; stopping the graph" in err
+
+
+def test_vings_launch_nodes_names_unknown_nodes_in_one_line():
+    import subprocess
+    import sys
+    p = subprocess.run([sys.executable, "-m", "vings_ros.cli", "launch", "--nodes", "mapper_node,bogus_node"],
+                       capture_output=True, text=True, timeout=120, cwd=REPO)
+    assert p.returncode != 0 and "Traceback" not in p.stderr
+    assert "--nodes: unknown node(s) bogus_node; known: frontend_node, mapper_node" in p.stderr
