@@ -22,7 +22,7 @@ SCRIPT = r"""
 import json, os, signal, subprocess, sys, threading, time
 from pathlib import Path
 import numpy as np
-work, dom, max_gap = Path(sys.argv[1]), sys.argv[2], sys.argv[3]
+work, dom, max_gap, with_mapper = Path(sys.argv[1]), sys.argv[2], sys.argv[3], sys.argv[4] == "1"
 from vings_core.sim import generate
 from vings_core.io import open_source
 from vings_core.eval.traj import evaluate_trajectory
@@ -62,9 +62,10 @@ threading.Thread(target=spin, daemon=True).start()
 mark = f"restart{os.getpid()}"
 env = dict(os.environ, VINGS_TEST_MARK=mark)
 launch = subprocess.Popen([sys.executable, "-m", "vings_ros.cli", "launch", "--use-sim-time", "--backpressure",
-                           "--no-mapper", "--no-loop", "--no-eraser", "--checkpoint", str(work / "map.ckpt"),
+                           "--no-loop", "--no-eraser", "--checkpoint", str(work / "map.ckpt"),
                            "--domain-id", dom, "-p", "frontend_node.respawn_backoff_s=0.2",
-                           "-p", f"frontend_node.resume_max_gap_s={max_gap}"],
+                           "-p", f"frontend_node.resume_max_gap_s={max_gap}", "-p", "mapping.iters_per_keyframe=20"]
+                          + ([] if with_mapper else ["--no-mapper"]),
                           env=env, stdout=open(work / "launch.log", "w"), stderr=subprocess.STDOUT,
                           start_new_session=True)
 replay = subprocess.Popen([sys.executable, "-m", "vings_ros.cli", "replay", str(mcap), "--wait-for-graph",
@@ -97,7 +98,11 @@ t_end = time.time() + 30
 while diag.get("restart", "fresh") == "fresh" and time.time() < t_end:
     time.sleep(0.1)
 time.sleep(1.5)
+t_end = time.time() + 60
+while diag.get("restart") == "relocalising" and not diag.get("restart_outcome") and time.time() < t_end:
+    time.sleep(0.1)
 res = {"replay_rc": rc, "restart": diag.get("restart"), "outcome": diag.get("restart_outcome"),
+       "render": diag.get("restart_render"),
        "gap": diag.get("restart_gap_s"), "segment": diag.get("segment"),
        "odom_before": len(before), "odom_after": len(odom) - len(before)}
 os.killpg(launch.pid, signal.SIGINT)
@@ -114,13 +119,13 @@ print("RESULT " + json.dumps(res))
 """
 
 
-def _run(tmp_path: Path, max_gap: float, offset: int) -> dict:
+def _run(tmp_path: Path, max_gap: float, offset: int, mapper: bool = False) -> dict:
     from vings_ros.ros_env import cleanup_fastdds_shm, shm_snapshot
     dom = str(200 + (os.getpid() + offset) % 30)
     env = dict(os.environ, PYTHONPATH=str(REPO))
     snap = shm_snapshot()
     try:
-        p = subprocess.run([sys.executable, "-c", textwrap.dedent(SCRIPT), str(tmp_path), dom, str(max_gap)],
+        p = subprocess.run([sys.executable, "-c", textwrap.dedent(SCRIPT), str(tmp_path), dom, str(max_gap), "1" if mapper else "0"],
                            env=env, cwd=REPO, capture_output=True, text=True, timeout=600)
     finally:
         cleanup_fastdds_shm(snap)
@@ -142,8 +147,10 @@ def test_a_killed_front_end_resumes_from_its_checkpoint(tmp_path):
 
 @pytest.mark.slow
 def test_after_a_long_gap_the_front_end_relocalises_in_its_world_frame(tmp_path):
-    res = _run(tmp_path, 0.0, 19)
+    """With the mapper running, the relocalised pose is also checked against a render of the map."""
+    res = _run(tmp_path, 0.0, 19, mapper=True)
     assert res["replay_rc"] == 0, res["replay_log"]
     assert res["restart"] == "relocalising" and res["outcome"] == "relocalised", res
+    assert "'answered'" in res["render"] and "'l1'" in res["render"], res
     assert res["segment"] == "0"
     assert res["ate_sim3_m"] < 0.02 * res["path_m"], res

@@ -328,3 +328,15 @@ def test_a_loop_pose_beyond_the_drift_of_odometry_is_refused():
     assert "odometry drifts at most" in closer._implausible(c, e)
     c.T_wc_loop = _pose(1.1, 0.0, np.radians(45))
     assert "turned 45.0 deg" in closer._implausible(c, e)
+
+
+def test_render_agreement_is_coverage_and_mean_error_over_covered_pixels():
+    from vings_core.loop.verify import render_agreement
+    img = np.full((4, 6, 3), 0.5, np.float32)
+    color = img.copy()
+    color[:2] += 0.2                            # the top half differs by 0.2
+    alpha = np.ones((4, 6), np.float32)
+    alpha[:, :3] = 0.0                          # the map covers the right half
+    cov, l1 = render_agreement({"color": color, "alpha": alpha}, img)
+    assert cov == 0.5 and abs(l1 - 0.1) < 1e-6
+    assert render_agreement({"color": color, "alpha": np.zeros((4, 6))}, img) == (0.0, float("inf"))

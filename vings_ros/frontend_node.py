@@ -12,6 +12,7 @@ import threading
 import time
 from typing import Optional
 
+import cv2
 import numpy as np
 from geometry_msgs.msg import PoseStamped
 from nav_msgs.msg import Odometry, Path
@@ -36,6 +37,8 @@ from vings_core.frontend.flow import make_flow_estimator
 from vings_core.io.calib_yaml import is_rectified_topic, load_calibration_yaml
 from vings_core.io.undistort import Undistorter
 from vings_core.keyframe_queue import UnackedKeyframes
+from vings_core.loop.config import LoopConfig
+from vings_core.loop.verify import render_agreement, scaled_camera
 from vings_core.exchange import ExchangeConfig, PoseKeeper
 from vings_core.exchange.config import KEEPER
 from vings_core.types import POSED_STATES, Calibration, CameraModel, Frame, TrackState
@@ -46,6 +49,7 @@ from . import registry
 from .node_base import BatchInbox, Level, NodeStatus, StageNode
 from .node_common import RateMeter, worth_reporting as _report
 from .node_config import FrontendNodeConfig, QueuePolicy
+from .render_client import RenderClient
 
 #: consecutive skipped images after which /diagnostics reports an error
 BAD_STREAK_ERROR = 5
@@ -130,6 +134,11 @@ class FrontendNode(StageNode):
         self._restored: Optional[FrontendCheckpoint] = None
         self._resend_restored = False
         self._ckpt_stamp: Optional[int] = None      # the last frame of the last checkpoint
+        self.restart_render: dict = {}              # the render check of a relocalisation
+        self.lcfg: LoopConfig = self.config("loop")
+        self._abort = threading.Event()             # stopping: a render wait ends at once
+        self.render_client = RenderClient(self, self._abort, ids="clock",
+                                          consequence="the relocalisation after the restart stays unverified")
         self._finished = False
         resume = self.resume_file()
         if resume is not None:
@@ -335,19 +344,50 @@ class FrontendNode(StageNode):
             f"restart: {self.restart.value} (the first image is {gap:.2f} s after the checkpoint's last "
             f"frame; frontend_node.resume_max_gap_s {self.settings.resume_max_gap_s:g})")
 
-    def _restart_result(self) -> None:
-        """After a relocalising restart: relocalised (same world frame) or a new map segment."""
+    def _restart_result(self, frame: Frame, est) -> None:
+        """After a relocalising restart: relocalised (the same world frame, its pose checked against
+        a render of the map when a mapper answers) or a new map segment."""
         if self.restart is not RestartMode.RELOCALISING or self.restart_outcome:
             return
         reloc, seg = self._restart_counts
         st = self.frontend.stats
         if st["segments"] > seg:
             self.restart_outcome = "new_segment"
-        elif st["relocalisations"] > reloc:
-            self.restart_outcome = "relocalised"
+        elif st["relocalisations"] > reloc and est is not None and est.state == TrackState.TRACKING:
+            why = self._verify_by_render(frame, est.T_wc)
+            if why is not None:
+                self.frontend.new_segment(f"the relocalisation after the restart disagrees with the map: {why}")
+                self.restart_outcome = "new_segment"
+            else:
+                self.restart_outcome = "relocalised"
         else:
             return
-        self.get_logger().info(f"restart: {self.restart_outcome.replace('_', ' ')} ({self.frontend.reason})")
+        self.get_logger().info(f"restart: {self.restart_outcome.replace('_', ' ')} ({self.frontend.reason}; "
+                               f"render check {self.restart_render or 'none'})")
+
+    def _verify_by_render(self, frame: Frame, T_wc: np.ndarray) -> Optional[str]:
+        """Render the map at the relocalised pose (``1/loop.render_downscale`` size) and compare it
+        with the frame as the loop closer verifies a loop (coverage, mean colour error); the reason
+        it disagrees, or None (agrees, or no render: recorded in ``restart_render``)."""
+        f = max(int(self.lcfg.render_downscale), 1)
+        cam = self.undist.camera if f == 1 else scaled_camera(self.undist.camera, f)
+        res = self.render_client.request(np.asarray(T_wc, np.float64), cam, None,
+                                         self.settings.relocalise_render_timeout_s,
+                                         about=f"relocalisation of frame {frame.stamp_ns}")
+        if res.render is None:
+            self.restart_render = {"outcome": res.outcome}
+            return None
+        img = frame.rgb().astype(np.float32) / 255.0
+        if f > 1:
+            img = cv2.resize(img, (cam.width, cam.height), interpolation=cv2.INTER_AREA)
+        cov, l1 = render_agreement(res.render, img)
+        self.restart_render = {"outcome": res.outcome, "coverage": round(cov, 3), "l1": round(l1, 4)}
+        if cov < self.lcfg.render_min_coverage:
+            # too little of the map in view to tell: kept, as the window's tracking checks passed
+            return None
+        if l1 > self.lcfg.render_l1_max:
+            return f"render L1 {l1:.3f} above {self.lcfg.render_l1_max:g} (coverage {100 * cov:.0f} %)"
+        return None
 
     def checkpoint_ready(self) -> bool:
         return self.frontend is not None and not self._finished and self._restored is None
@@ -436,7 +476,7 @@ class FrontendNode(StageNode):
         kfs = self.frontend.pop_keyframes()
         self._exchange_send(stamp)
         self._publish_keyframes(kfs)
-        self._restart_result()
+        self._restart_result(frame, ests[-1] if ests else None)
         self.rate.tick()
         self.mark_changed()
         every = self.settings.checkpoint_every_s
@@ -502,6 +542,7 @@ class FrontendNode(StageNode):
                   "keyframes_unacknowledged": len(self.unacked), "keyframes_resent": self.keyframes_resent,
                   "restart": self.restart.value, "restart_outcome": self.restart_outcome,
                   "restart_gap_s": self.restart_gap_s if self.restart_gap_s is not None else "",
+                  "restart_render": str(self.restart_render) if self.restart_render else "",
                   **self._vi_values(st),
                   **self._exchange_values()}
         if st.get("vi_error"):
@@ -566,6 +607,7 @@ class FrontendNode(StageNode):
     def finish(self) -> None:
         """After the worker: the checkpoint (the window as it is, so a restart tracks on), then flush
         the keyframes still in the window to the mapper."""
+        self._abort.set()
         if self.checkpoint_file is not None and self.error is None and self.checkpoint_ready():
             self.save_checkpoint("shutdown")
         self._finished = True

@@ -118,8 +118,11 @@ class FrontendNodeConfig(CheckpointSettings, RespawnSettings):
     every ``checkpoint_period_s`` of wall time and at the stop); the keyframes the mapper has not
     acknowledged wait in ``F.frontend.unacked/``. A restarted node loads it; its first image goes on
     tracking when it comes at most ``resume_max_gap_s`` after the checkpoint's last frame, else it is
-    relocalised against the checkpoint's window (a new map segment if that fails); an image not
-    after the checkpoint's last frame (another recording) starts a fresh front end."""
+    relocalised against the checkpoint's window (a new map segment if that fails) and the pose found
+    verified against a render of the map (the loop closer's ``render_l1_max`` and
+    ``render_min_coverage``; the mapper answers within ``relocalise_render_timeout_s`` or it stays
+    unverified); an image not after the checkpoint's last frame (another recording) starts a fresh
+    front end."""
 
     queue_policy: QueuePolicy = QueuePolicy.KEEP_NEWEST
     queue_size: int = 64
@@ -132,6 +135,7 @@ class FrontendNodeConfig(CheckpointSettings, RespawnSettings):
     unacked_memory_keyframes: int = 8
     checkpoint_every_s: float = 0.5
     resume_max_gap_s: float = 1.0
+    relocalise_render_timeout_s: float = 2.0
 
     def validate(self) -> None:
         super().validate()
@@ -139,6 +143,8 @@ class FrontendNodeConfig(CheckpointSettings, RespawnSettings):
             raise ValueError(f"checkpoint_every_s must be >= 0, got {self.checkpoint_every_s}")
         if not self.resume_max_gap_s >= 0:
             raise ValueError(f"resume_max_gap_s must be >= 0, got {self.resume_max_gap_s}")
+        if not self.relocalise_render_timeout_s > 0:
+            raise ValueError(f"relocalise_render_timeout_s must be > 0, got {self.relocalise_render_timeout_s}")
         if self.resend_after_s < 0:
             raise ValueError("resend_after_s must be >= 0")
         if self.unacked_memory_keyframes < 1:

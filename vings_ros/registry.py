@@ -50,7 +50,7 @@ class NodeSpec:
 
 NODES: tuple[NodeSpec, ...] = (
     NodeSpec("frontend_node", "vings_ros.frontend_node", "vings_ros.node_config:FrontendNodeConfig",
-             reads=("frontend", "vio", "exchange")),
+             reads=("frontend", "vio", "exchange", "loop")),
     NodeSpec("mapper_node", "vings_ros.mapper_node", "vings_ros.node_config:MapperNodeConfig",
              reads=("mapping", "loop", "eraser"), stop_timeout_s=180.0),
     NodeSpec("loop_closer_node", "vings_ros.loop_closer_node", "vings_ros.node_config:LoopCloserNodeConfig",

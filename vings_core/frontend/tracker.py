@@ -574,6 +574,11 @@ class Frontend:
             self._start_new_segment(why)
         return est
 
+    def new_segment(self, why: str) -> None:
+        """Start a new map segment now (as after ``relocalize_frames`` lost frames): e.g. a
+        relocalisation that a render of the map contradicts."""
+        self._start_new_segment(why)
+
     def _start_new_segment(self, why: str) -> None:
         """Give up on the current window: emit its keyframes and re-initialise from the next frame,
         anchored at the last good pose and keeping the scale (median depth)."""

@@ -203,6 +203,17 @@ def scaled_camera(camera: CameraModel, f: int) -> CameraModel:
                        cx=(camera.cx + 0.5) * sx - 0.5, cy=(camera.cy + 0.5) * sy - 0.5)
 
 
+def render_agreement(out: dict, image: np.ndarray) -> tuple[float, float]:
+    """How a render ``out`` (``color`` (h, w, 3), ``alpha`` (h, w)) agrees with ``image`` (h, w, 3)
+    in [0, 1]: the fraction of pixels the map covers (alpha > 0.5) and the mean absolute colour
+    error over them (``inf`` when it covers none)."""
+    cov = np.asarray(out["alpha"]) > 0.5
+    if not cov.any():
+        return 0.0, float("inf")
+    diff = np.abs(np.asarray(out["color"], np.float32) - np.asarray(image, np.float32)[..., :3])
+    return float(cov.mean()), float(diff[cov].mean())
+
+
 def render_check(render: Optional[RenderFn], check: Check, image: np.ndarray, camera: CameraModel,
                  older_than: Optional[int], cfg: LoopConfig, depth: Optional[np.ndarray] = None) -> bool:
     """Render the map from ``check.T_wc_loop`` at ``1/render_downscale`` of the resolution and
@@ -224,13 +235,12 @@ def render_check(render: Optional[RenderFn], check: Check, image: np.ndarray, ca
     if f > 1:
         image = cv2.resize(image, (cam.width, cam.height), interpolation=cv2.INTER_AREA)
     cov = np.asarray(out["alpha"]) > 0.5
-    check.coverage = float(cov.mean())
+    check.coverage, l1 = render_agreement(out, image)
     if check.coverage < cfg.render_min_coverage:
         check.reason = f"render covers {100 * check.coverage:.0f} % of the image (need " \
                        f"{100 * cfg.render_min_coverage:g} %)"
         return False
-    diff = np.abs(np.asarray(out["color"], np.float32) - image[..., :3])
-    check.render_l1 = float(diff[cov].mean())
+    check.render_l1 = l1
     if depth is not None and out.get("depth") is not None and check.T_on is not None:
         d = depth if f == 1 else cv2.resize(depth, (cam.width, cam.height), interpolation=cv2.INTER_NEAREST)
         dr = np.asarray(out["depth"], np.float64)
