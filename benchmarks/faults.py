@@ -254,8 +254,9 @@ def exp_node_kill(work: Path, args) -> dict:
     from vings_core.mapping import Mapper
     from vings_core.types import Trajectory
     mcap = _sim(work, args.frames, args.scene, tuple(int(v) for v in args.size.split("x")))
-    gt = open_source(str(mcap)).gt_camera_trajectory()
-    n_frames = len(gt)
+    src = open_source(str(mcap))
+    gt = src.gt_camera_trajectory()
+    n_frames = len(src.frame_stamps())
     names = {"frontend_node": "vings/frontend", "mapper_node": "vings/mapper", "loop_closer_node": "vings/loop_closer",
              "eraser_node": "vings/eraser"}
     out = {}
