@@ -137,12 +137,15 @@ class FrontendNode(StageNode):
         self.restart_render: dict = {}              # the render check of a relocalisation
         self.lcfg: LoopConfig = self.config("loop")
         self._abort = threading.Event()             # stopping: a render wait ends at once
-        self.render_client = RenderClient(self, self._abort, ids="clock",
-                                          consequence="the relocalisation after the restart stays unverified")
+        self.render_client: Optional[RenderClient] = None
         self._finished = False
         resume = self.resume_file()
         if resume is not None:
             self._restore(load_frontend_checkpoint(resume, self.fcfg, self._flow), resume)
+            # renders to check a relocalisation: asked for only after a restart, and the client is
+            # removed once the restart is settled (the eraser's renders do not reach this node)
+            self.render_client = RenderClient(self, self._abort, ids="clock",
+                                              consequence="the relocalisation after the restart stays unverified")
 
     def _new_unacked(self) -> UnackedKeyframes:
         """With a checkpoint, the unacknowledged keyframes are also kept in ``<checkpoint>.unacked/``
@@ -334,12 +337,15 @@ class FrontendNode(StageNode):
             self._resend_restored = False
             self._last_stamp = None
             self._set_camera(self.raw_camera)
+            self._drop_render_client()
             return
         gap = (stamp - last) * 1e-9 if last is not None else 0.0
         self.restart = restart_policy(gap, self.settings.resume_max_gap_s)
         self.restart_gap_s = gap
         self._restart_counts = (self.frontend.stats["relocalisations"], self.frontend.stats["segments"])
         self.frontend.restarted(self.restart is RestartMode.RESUMED, gap)
+        if self.restart is RestartMode.RESUMED:
+            self._drop_render_client()
         self.get_logger().info(
             f"restart: {self.restart.value} (the first image is {gap:.2f} s after the checkpoint's last "
             f"frame; frontend_node.resume_max_gap_s {self.settings.resume_max_gap_s:g})")
@@ -362,13 +368,22 @@ class FrontendNode(StageNode):
                 self.restart_outcome = "relocalised"
         else:
             return
+        self._drop_render_client()
         self.get_logger().info(f"restart: {self.restart_outcome.replace('_', ' ')} ({self.frontend.reason}; "
                                f"render check {self.restart_render or 'none'})")
+
+    def _drop_render_client(self) -> None:
+        if self.render_client is not None:
+            self.render_client.disconnect()
+            self.render_client = None
 
     def _verify_by_render(self, frame: Frame, T_wc: np.ndarray) -> Optional[str]:
         """Render the map at the relocalised pose (``1/loop.render_downscale`` size) and compare it
         with the frame as the loop closer verifies a loop (coverage, mean colour error); the reason
         it disagrees, or None (agrees, or no render: recorded in ``restart_render``)."""
+        if self.render_client is None:
+            self.restart_render = {"outcome": "no_client"}
+            return None
         f = max(int(self.lcfg.render_downscale), 1)
         cam = self.undist.camera if f == 1 else scaled_camera(self.undist.camera, f)
         res = self.render_client.request(np.asarray(T_wc, np.float64), cam, None,

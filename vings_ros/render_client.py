@@ -89,11 +89,22 @@ class RenderClient:
         self._waiting: Optional[int] = None
         self._reply: Optional[RenderReply] = None
         self._pub = None
+        self._subs: list = []
         if connect:
             qos = T.sensor_qos(T.OUTPUT_DEPTH)
             self._pub = node.create_publisher(PoseStamped, RENDER_REQUEST_TOPIC, qos)
-            for part, topic in REPLY_TOPICS.items():
-                node.create_subscription(Image, topic, lambda m, p=part: self.on_reply(p, m), qos)
+            self._subs = [node.create_subscription(Image, topic, lambda m, p=part: self.on_reply(p, m), qos)
+                          for part, topic in REPLY_TOPICS.items()]
+
+    def disconnect(self) -> None:
+        """Remove the request publisher and the reply subscriptions (a client needed only for a
+        while: replies to others then no longer reach this node). Worker thread, no request in
+        flight."""
+        for sub in self._subs:
+            self._node.destroy_subscription(sub)
+        if self._pub is not None:
+            self._node.destroy_publisher(self._pub)
+        self._subs, self._pub = [], None
 
     # ------------------------------------------------------------------------- executor thread
 
@@ -134,7 +145,7 @@ class RenderClient:
         reply. Without a mapper subscribed nothing is sent (``no_mapper``); a reply whose size is
         not ``camera``'s is ``mismatched``. ``about`` names the request in warnings (``keyframe
         <stamp>``)."""
-        if self._abort.is_set():
+        if self._abort.is_set() or self._pub is None:
             return RenderOutcome("aborted")
         if self._node.count_subscribers(RENDER_REQUEST_TOPIC) == 0:
             self._count("no_mapper")
