@@ -11,24 +11,12 @@ from vings_core.errors import InputError
 from vings_core.frontend import DISFlow, Frontend, FrontendConfig
 from vings_core.frontend.checkpoint import (RestartMode, load_frontend_checkpoint, restart_policy,
                                             save_frontend_checkpoint)
-from vings_core.frontend.synthetic import make_box_scene, orbit_trajectory, render_box
-from vings_core.types import CameraModel, Frame, TrackState
+from vings_core.types import Frame, TrackState
 
-CAM = CameraModel(160, 120, 110.0, 110.0, 79.5, 59.5)
-STEP_NS = 50_000_000
-N = 36
+# the synthetic orbit of the front-end state tests (36 frames around a textured box)
+from test_frontend_state import CAM, STEP_NS, _cfg, frames  # noqa: E402,F401  (a fixture)
+
 CUT = 18
-
-
-def _cfg() -> FrontendConfig:
-    return FrontendConfig(keyframe_flow_lr_px=1.2)
-
-
-@pytest.fixture(scope="module")
-def frames():
-    scene = make_box_scene(seed=1)
-    return [Frame(1_000_000_000 + k * STEP_NS, render_box(scene, CAM, T)[0], CAM)
-            for k, T in enumerate(orbit_trajectory(N, radius=1.5, arc=1.6))]
 
 
 def _feed(fe: Frontend, frames) -> list[int]:

@@ -27,7 +27,6 @@ from pathlib import Path
 from typing import Any, Optional
 
 from ..errors import InputError
-from ..types import CameraModel
 from ..util import atomic_write
 from .config import FrontendConfig
 from .flow import FlowEstimator
