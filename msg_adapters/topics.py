@@ -61,6 +61,7 @@ CAMERA_INFO_DEPTH = 10
 ACK_DEPTH = 100
 OUTPUT_DEPTH = 10
 POSE_EXCHANGE_DEPTH = 100   # pose updates / corrections between the nodes: none may be lost
+ODOMETRY_HISTORY = 100      # odometry messages kept for a late subscriber (transient local)
 
 
 def sensor_qos(depth: int) -> QoSProfile:
@@ -80,6 +81,14 @@ def latched_qos(depth: int = 1) -> QoSProfile:
     return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=int(depth),
                       reliability=ReliabilityPolicy.RELIABLE,
                       durability=DurabilityPolicy.TRANSIENT_LOCAL)
+
+
+def odometry_qos() -> QoSProfile:
+    """``/vings/odometry`` publisher: reliable, transient local, the last :data:`ODOMETRY_HISTORY`
+    messages kept, so that a subscriber that asks for ``transient_local`` durability gets the
+    poses published before it was discovered (a volatile subscriber matches too and gets only new
+    ones)."""
+    return latched_qos(ODOMETRY_HISTORY)
 
 
 def clock_qos() -> QoSProfile:

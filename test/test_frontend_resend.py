@@ -63,10 +63,20 @@ m2.ack(kfs)
 assert wait_for(lambda: len(fe.unacked) == 0, 20)
 res["resent"] = fe.keyframes_resent
 res["values"] = {k: fe.diagnostics().values[k] for k in ("keyframes_unacknowledged", "keyframes_resent")}
+# odometry published before a subscriber exists reaches one that asks for transient_local durability
+from nav_msgs.msg import Odometry
+for i in range(5):
+    m = Odometry(); m.header.stamp.sec = 100 + i; m.pose.pose.orientation.w = 1.0
+    fe.pub_odom.publish(m)
+late = Node("late_subscriber"); got_odom = []
+late.create_subscription(Odometry, T.ODOMETRY_TOPIC, lambda m: got_odom.append(m.header.stamp.sec), T.latched_qos(50))
+halts.append(spin(late))
+wait_for(lambda: len(got_odom) >= 5, 20)
+res["late_odometry"] = got_odom
 for h in halts[:1] + halts[2:]:
     h()
 fe.shutdown()
-fe.destroy_node(); m2.destroy_node()
+fe.destroy_node(); m2.destroy_node(); late.destroy_node()
 rclpy.shutdown()
 print("RESULT " + json.dumps(res))
 """
@@ -77,3 +87,4 @@ def test_frontend_sends_unacknowledged_keyframes_to_a_restarted_mapper():
     assert res["unacked_after_ack"] == 2
     assert res["resent_to_new"] == [2 * 10 ** 9, 3 * 10 ** 9]
     assert res["resent"] >= 2 and res["values"] == {"keyframes_unacknowledged": 0, "keyframes_resent": res["resent"]}
+    assert res["late_odometry"] == [100, 101, 102, 103, 104]

@@ -110,7 +110,7 @@ class FrontendNode(StageNode):
                                  sq(T.CAMERA_INFO_DEPTH))
         self.create_subscription(Imu, T.IMU_TOPIC, self._on_imu, sq(T.IMU_DEPTH))
         self.create_subscription(Image, T.DYNAMIC_MASK_TOPIC, self._on_mask, sq(T.OUTPUT_DEPTH * 4))
-        self.pub_odom = self.create_publisher(Odometry, T.ODOMETRY_TOPIC, sq(T.OUTPUT_DEPTH * 10))
+        self.pub_odom = self.create_publisher(Odometry, T.ODOMETRY_TOPIC, T.odometry_qos())
         self.pub_path = self.create_publisher(Path, T.PATH_TOPIC, T.latched_qos(1))
         self.pub_kf = {p: self.create_publisher(type_, PART_TOPICS[p], sq(T.OUTPUT_DEPTH * 4))
                        for p, type_ in (("image", Image), ("depth", Image), ("inv_depth_var", Image),
