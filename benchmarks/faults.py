@@ -133,7 +133,7 @@ class _Listener:
         def odom(m):
             e = odometry_to_estimate(m, T.ODOMETRY_TOPIC)
             self.odom[int(e.stamp_ns)] = e.T_wc
-        self.node.create_subscription(Odometry, T.ODOMETRY_TOPIC, odom, T.sensor_qos(500))
+        self.node.create_subscription(Odometry, T.ODOMETRY_TOPIC, odom, T.latched_qos(500))
         self._stop = threading.Event()
         self._th = threading.Thread(target=self._spin, daemon=True)
         self._th.start()
