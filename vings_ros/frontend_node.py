@@ -411,7 +411,7 @@ class FrontendNode(StageNode):
         size = save_frontend_checkpoint(path, {"frontend": self.frontend, "keeper": self.keeper},
                                         extra={"raw_camera": self.raw_camera.to_dict()})
         fe = self.frontend
-        self._ckpt_stamp = fe._last_stamp
+        self._ckpt_stamp = fe.last_stamp_ns
         return f"{fe.stats['frames']} frames, {len(fe.window)} window keyframes, {size / 1e6:.1f} MB"
 
     # ----------------------------------------------------------------------------- the worker

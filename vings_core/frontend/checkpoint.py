@@ -9,7 +9,7 @@ gap between the checkpoint and the first new image is :func:`restart_policy`'s d
 File format: a pickle (protocol 5) of a dict: ``format`` (:data:`FORMAT`), ``version``
 (:data:`VERSION`), ``camera`` (the working camera, :meth:`CameraModel.to_dict`), ``last_stamp_ns``
 (the last frame processed), ``written_unix_s``, ``extra`` (the caller's plain data, e.g. a node's
-raw camera and its unacknowledged keyframes) and ``state``: the pickled objects (the
+raw camera) and ``state``: the pickled objects (the
 :class:`~vings_core.frontend.Frontend` and whatever the caller adds, e.g. its pose keeper, pickled
 together so shared references stay shared). The flow estimators are not stored (OpenCV objects):
 the loading front end's are put in their place. Only load checkpoints you wrote: unpickling runs
@@ -24,12 +24,15 @@ import pickle
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Optional
+from typing import TYPE_CHECKING, Any, Optional
 
 from ..errors import InputError
 from ..util import atomic_write
 from .config import FrontendConfig
 from .flow import FlowEstimator
+
+if TYPE_CHECKING:                       # pragma: no cover
+    from .tracker import Frontend
 
 FORMAT = "vings-frontend-checkpoint"
 VERSION = 1
@@ -57,7 +60,7 @@ class FrontendCheckpoint:
     extra: dict = field(default_factory=dict)
 
     @property
-    def frontend(self):
+    def frontend(self) -> "Frontend":
         return self.state["frontend"]
 
 
@@ -90,7 +93,7 @@ def save_frontend_checkpoint(path: str | os.PathLike, state: dict[str, Any], ext
     buf = io.BytesIO()
     _Pickler(buf, flows).dump(state)
     doc = {"format": FORMAT, "version": VERSION, "camera": fe.camera.to_dict(),
-           "last_stamp_ns": fe._last_stamp, "written_unix_s": time.time(), "extra": extra or {},
+           "last_stamp_ns": fe.last_stamp_ns, "written_unix_s": time.time(), "extra": extra or {},
            "state": buf.getvalue()}
 
     def write(tmp: str) -> None:

@@ -177,6 +177,11 @@ class Frontend:
         return self.win.lowres_depth
 
     @property
+    def last_stamp_ns(self) -> Optional[int]:
+        """Stamp of the last frame processed (``None`` before the first)."""
+        return self._last_stamp
+
+    @property
     def kf_pose_version(self) -> int:
         """Counts keyframe-pose writes (see :meth:`keyframes_moved_since`)."""
         return self.buffer.version
