@@ -419,6 +419,14 @@ def test_covered_lens_starts_a_new_segment_soon_after_it_clears():
     assert posed >= 0.95 * len(seeing), (posed, len(seeing))
     n0 = len(fe.trajectory(states=("tracking",), segments={segs[0]["index"]}))
     assert n0 == segs[0]["frames"] and segs[0]["last_stamp_ns"] < frames[blind[0]].stamp_ns + 5 * STEP_NS
+    # the segment starts the loop closer is told of: every keyframe of segment 1 is at or after its
+    # start, every one of segment 0 before it
+    starts = fe.segment_starts()
+    assert set(starts) == {0, 1} and starts[0] == frames[0].stamp_ns
+    kfs = fe.keyframe_trajectory().stamps_ns
+    seg_of = {s: r for r in (0, 1) for s in fe.trajectory(segments={r}).stamps_ns.tolist()}
+    assert all((s >= starts[1]) == (seg_of[s] == 1) for s in kfs.tolist())
+    assert fe.status()["segment_first_stamp_ns"] == starts[1]
 
 
 def test_frames_of_a_reference_that_lost_overlap_are_back_filled():

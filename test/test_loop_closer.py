@@ -3,12 +3,14 @@ plane, the render check and acceptance rules with loops.json records, the correc
 pose exchange (keeper jump, mapper Gaussians by ID(g) incl. the passive store) and persistence."""
 from __future__ import annotations
 
+from typing import Optional
+
 import numpy as np
 import pytest
 import torch
 
 from vings_core.exchange import ExchangeConfig, PoseFollower, PoseKeeper
-from vings_core.geometry import np_pose_inverse, np_se3_exp, sim3, sim3_apply_to_pose, sim3_scale
+from vings_core.geometry import np_pose_inverse, np_se3_exp, np_so3_exp, sim3, sim3_apply_to_pose, sim3_scale
 from vings_core.loop import KeyframeDatabase, LoopCloser, LoopConfig, Verdict
 from vings_core.loop.database import extract
 from vings_core.loop.verify import Candidate, Check, decide, find_candidates, match_descriptors, solve_loop_pnp
@@ -147,11 +149,13 @@ def owner_pose(owner, s):
     return np.eye(4) if s is None else owner.poses[s]
 
 
-def _loop_run(tmp_path, render_ok: bool = True):
+def _loop_run(tmp_path, render_ok: bool = True, segment: Optional[tuple[int, np.ndarray, bool]] = None):
     """A circle of radius 4 m under a textured plane 4 m away (each view covers 5.4 x 4 m of it, so
     only keyframes less than about a fifth of the circle apart overlap): 30 keyframes, then one
-    back over the first place; the odometry drifted by a growing yaw and offset. Returns (closer,
-    keeper owner, truth)."""
+    back over the first place; the odometry drifted by a growing yaw and offset. ``segment``:
+    ``(k, G, told)``: from keyframe ``k`` on the front end is in a new map segment, placed off by
+    the similarity ``G`` (as after a loss it anchors at a guess), and the closer is told so
+    (``segment_started``) if ``told``. Returns (closer, keeper owner, truth)."""
     tex = _texture(3, 1536)
     ext = 24.0
     cfg = LoopConfig(min_gap_keyframes=8, min_span_keyframes=15, radius=3.0, vocabulary_after=10,
@@ -178,6 +182,10 @@ def _loop_run(tmp_path, render_ok: bool = True):
         # the front end: its last keyframe's pose (as corrected) times the drifted odometry
         odo = np_pose_inverse(drift[prev] @ truth[prev]) @ drift[s] @ truth[s] if prev else drift[s] @ truth[s]
         T_est = owner_pose(keeper_owner, prev) @ odo
+        if segment is not None and s == sorted(truth)[segment[0]]:
+            T_est = sim3_apply_to_pose(segment[1], T_est)      # the new segment's guessed anchor
+            if segment[2]:
+                closer.segment_started(s)
         prev = s
         kf = Keyframe(stamp_ns=s, image=kf.image, T_wc=torch.from_numpy(T_est), depth=kf.depth,
                       inv_depth_var=kf.inv_depth_var, valid=kf.valid, camera=CAM)
@@ -216,6 +224,32 @@ def test_a_revisit_is_accepted_recorded_and_corrects_the_keeper(tmp_path):
         assert np.allclose(e.T_wc, owner.poses[e.stamp_ns], atol=1e-9)
     # every rejected candidate says why
     assert all(x["reason"] for x in closer.records)
+
+
+@pytest.mark.parametrize("told", [True, False])
+def test_a_new_map_segment_rejoins_the_map_at_its_first_loop(tmp_path, told):
+    """From keyframe 18 on the front end is in a new segment anchored 1.2 m and 25 deg off (scale
+    1.15). Told so, the closer accepts the revisit although its pose is beyond the odometry's drift,
+    and the correction moves the whole segment (the break in the chain bends nothing): the end is
+    back near the truth. Not told, the loop is refused as implausible."""
+    G = sim3(np_so3_exp(np.array([0.0, 0.0, np.radians(25)])), [1.2, -0.8, 0.0], 1.15)
+    closer, owner, truth = _loop_run(tmp_path, segment=(18, G, told))
+    acc = [r for r in closer.records if r["verdict"] == Verdict.ACCEPTED.value]
+    last = max(truth)
+    err_end = np.linalg.norm(owner.poses[last][:3, 3] - truth[last][:3, 3])
+    if not told:
+        assert not acc and err_end > 1.0
+        assert any("odometry drifts at most" in r["reason"] or "turned" in r["reason"] for r in closer.records)
+        return
+    assert acc and acc[0]["correction"]["segment_breaks"] == 1
+    assert err_end < 0.15
+    # inside the new segment the keyframes keep their shape (relative poses as tracked)
+    st = sorted(truth)[18:]
+    for a, b in zip(st[:-1], st[1:]):
+        rel_true = np_pose_inverse(truth[a]) @ truth[b]
+        rel_now = np_pose_inverse(owner.poses[a]) @ owner.poses[b]
+        assert np.linalg.norm(rel_now[:3, 3] - rel_true[:3, 3]) < 0.1
+    assert closer.state_dict()["segment_starts"] == [st[0]]
 
 
 def test_without_a_map_nothing_is_accepted(tmp_path):

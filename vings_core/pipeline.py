@@ -386,6 +386,10 @@ class SlamRunner:
         failure of the loop closer stops it (logged, ``loops.json`` says why), never the mapping."""
         if self.loop is None or self._abort or self.loop_error is not None:
             return
+        if self.frontend is not None:       # the front end's later map segments: rejoined by a loop
+            for seg, first in self.frontend.segment_starts().items():
+                if seg > 0:
+                    self.loop.segment_started(first)
         try:
             with timed("loop", "keyframe (total)"):
                 self.loop.add_keyframe(kf)

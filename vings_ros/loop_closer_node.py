@@ -145,6 +145,7 @@ class LoopCloserNode(StageNode):
         self.rate = RateMeter(30.0)
         self._last_report = 0.0
         self._reported_records = -1
+        self._segment_starts: set[int] = set()     # first frames of the front end's later map segments
         self.closer = LoopCloser(self.lcfg, render=self.render_map, metric=self.metric)
         resume = self.resume_file()
         if resume is not None:
@@ -187,6 +188,9 @@ class LoopCloserNode(StageNode):
             return
         if st is None:
             return
+        seg, first = st["values"].get("segment", "0"), st["values"].get("segment_first_stamp_ns", "0")
+        if str(seg).isdigit() and int(seg) > 0 and str(first).isdigit() and int(first) > 0:
+            self._segment_starts.add(int(first))       # taken by the worker (step)
         vi = st["values"].get("vi_state")
         if vi is None:
             return
@@ -221,6 +225,8 @@ class LoopCloserNode(StageNode):
         if int(kf.stamp_ns) in self.closer.db:
             self.keyframes_skipped += 1   # resumed graph: the database already holds it
             return
+        for s in sorted(self._segment_starts - self.closer.segment_starts):
+            self.closer.segment_started(s)      # the front end's new map segments (its /diagnostics)
         try:
             rec = self.closer.add_keyframe(kf)
         except InputError as e:

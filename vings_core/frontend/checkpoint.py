@@ -35,7 +35,7 @@ if TYPE_CHECKING:                       # pragma: no cover
     from .tracker import Frontend
 
 FORMAT = "vings-frontend-checkpoint"
-VERSION = 1
+VERSION = 2
 _FLOW, _CHAIN = "flow_estimator", "chain_estimator"
 
 

@@ -45,6 +45,8 @@ class PoseBuffer:
         #: keyframe stamp -> ``version`` at its last write, in write order
         self._kf_written: dict[int, int] = {}
         self.segment = 0        #: the map segment that :meth:`record` assigns frames to
+        #: map segment -> the earliest frame recorded in it
+        self.segment_first: dict[int, int] = {}
 
     def __contains__(self, stamp: int) -> bool:
         return int(stamp) in self._records
@@ -72,6 +74,9 @@ class PoseBuffer:
         if stamp not in self._records:
             self._order.append(stamp)
         self._records[stamp] = PoseRecord(ref, T_rel, state, is_kf, cov, self.segment)
+        first = self.segment_first.get(self.segment)
+        if first is None or stamp < first:
+            self.segment_first[self.segment] = int(stamp)
         return PoseEstimate(stamp, np.linalg.inv(T_cw), cov, state, is_kf)
 
     def set_keyframe_pose(self, stamp: int, T_cw: np.ndarray) -> None:

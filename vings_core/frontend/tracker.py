@@ -258,6 +258,11 @@ class Frontend:
         long run does not cost O(history) poses."""
         return self.buffer.trajectory(states, max_poses, segments)
 
+    def segment_starts(self) -> dict[int, int]:
+        """Map segment -> its earliest frame's stamp (every keyframe of a segment is at or after
+        it; those of the segment before are before it)."""
+        return dict(self.buffer.segment_first)
+
     def segments(self) -> list[dict]:
         """The map segments with tracked frames (a new one starts when tracking is lost for
         ``relocalize_frames`` frames; each has its own world frame and scale): ``index``,
@@ -356,6 +361,7 @@ class Frontend:
         """State, reason and counters (plain data, for logs and diagnostics)."""
         vi = self.vio.status() if self.vio is not None else {"vi_state": "visual-only"}
         return {**vi, "state": self.state, "reason": self.reason, "segment": self.init.segment.index,
+                "segment_first_stamp_ns": self.buffer.segment_first.get(self.init.segment.index, 0),
                 "keyframes_in_window": len(self.window), "edges": len(self.graph),
                 "motion_detected": self.motion_detected,
                 "max_mean_flow_lr_px": self.max_mean_flow_lr, **self.stats}

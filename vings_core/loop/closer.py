@@ -8,6 +8,7 @@ keyframe is mapped (so its renders see the map as trained), ``loop_closer_node``
 """
 from __future__ import annotations
 
+import bisect
 import logging
 import time
 from dataclasses import dataclass
@@ -45,6 +46,11 @@ class AcceptedLoop:
     sigma_scale: float
 
 
+#: information (per tangent component) of the odometry edge across a map-segment break: next to
+#: nothing, so the pose graph is solvable but the break bends nothing
+BREAK_INFO = 1e-6
+
+
 class LoopCloser:
     """Loop detection and correction over the keyframes it is given.
 
@@ -68,6 +74,8 @@ class LoopCloser:
         self.corrections: list[dict] = []
         self._out: list[IncrementBatch] = []
         self._verified: list[tuple[int, int]] = []     # (keyframe, candidate) indices awaiting confirmation
+        #: first frames of the front end's map segments after the first (segment_started)
+        self.segment_starts: set[int] = set()
         self.stats = dict(keyframes=0, candidates_checked=0, rejected=0, accepted=0,
                           detect_s=0.0, correct_s=0.0, max_detect_s=0.0)
 
@@ -84,6 +92,31 @@ class LoopCloser:
     def poll(self) -> Optional[IncrementBatch]:
         """The correction of the last accepted loop, once (None when there is none)."""
         return self._out.pop(0) if self._out else None
+
+    # ------------------------------------------------------------------ map segments
+
+    def segment_started(self, stamp_ns: int) -> None:
+        """The front end started a new map segment at frame ``stamp_ns`` (after tracking was lost, or
+        a restart it could not relocalise): its own world frame and scale, placed at the last pose
+        the front end knew. The keyframes on either side are not joined by odometry in the pose graph
+        (:data:`BREAK_INFO`), and a loop from a keyframe after it to one before is not held to the
+        odometry drift limits, so the first loop into the mapped world moves the whole new segment
+        there (it rejoins the map's frame)."""
+        self.segment_starts.add(int(stamp_ns))
+
+    def _breaks(self, lo: int = 0, hi: Optional[int] = None) -> list[tuple[int, int]]:
+        """Consecutive database keyframes ``(older, newer)`` (indices ``lo`` to ``hi``) with a
+        segment start between them (``older < start <= newer``)."""
+        if not self.segment_starts:
+            return []
+        ent = self.db.entries[lo:(len(self.db.entries) if hi is None else hi + 1)]
+        starts = sorted(self.segment_starts)
+        out = []
+        for a, b in zip(ent[:-1], ent[1:]):
+            i = bisect.bisect_right(starts, a.stamp_ns)
+            if i < len(starts) and starts[i] <= b.stamp_ns:
+                out.append((a.stamp_ns, b.stamp_ns))
+        return out
 
     # ------------------------------------------------------------------ keyframes
 
@@ -181,6 +214,8 @@ class LoopCloser:
         ``max_drift_fraction`` of the path travelled since the candidate (plus one median depth of
         the current keyframe), or turned by more than ``max_drift_rot_deg``."""
         cfg = self.cfg
+        if self._breaks(ch.candidate.index, e.index):
+            return None         # a new segment placed by a guess: the loop is what places it
         P = np.array([x.T_wc[:3, 3] for x in self.db.entries[ch.candidate.index:e.index + 1]]).reshape(-1, 3)
         path = float(np.linalg.norm(np.diff(P, axis=0), axis=1).sum())
         shift = float(np.linalg.norm(ch.T_wc_loop[:3, 3] - e.T_wc[:3, 3]))
@@ -233,11 +268,13 @@ class LoopCloser:
         poses = {e.stamp_ns: e.T_wc for e in self.db.entries}
         edges = [LoopEdge(l.older, l.newer, l.T_on if mode == GraphMode.SIM3 else _rigid(l.T_on),
                           l.sigma_rot, l.sigma_pos, l.sigma_scale) for l in self.loops]
+        dim = 7 if mode == GraphMode.SIM3 else 6
+        breaks = {ab: np.eye(dim) * BREAK_INFO for ab in self._breaks()}
         with timed("loop", "pose graph"):
             res = optimize_pose_graph(poses, edges, mode, odo_sigma_rot=cfg.odo_sigma_rot,
                                   odo_sigma_pos_rel=cfg.odo_sigma_pos_rel, odo_sigma_pos_min=cfg.odo_sigma_pos_min,
                                   odo_sigma_scale=cfg.odo_sigma_scale, robust_k=cfg.robust_k,
-                                  fixed=self.db.entries[0].stamp_ns)
+                                  fixed=self.db.entries[0].stamp_ns, odometry_info=breaks)
         incs = {s: C for s, C in res.increments.items() if np.abs(C - np.eye(4)).max() > 1e-12}
         self.db.move(incs)
         batch = self.follower.send(incs, seq_hint=loop.newer)
@@ -249,7 +286,7 @@ class LoopCloser:
         self.stats["accepted"] += 1
         shift = float(np.linalg.norm(self.db.get(loop.newer).T_wc[:3, 3] - poses[loop.newer][:3, 3]))
         info = {"older": loop.older, "newer": loop.newer, "graph": mode.value, "keyframes": len(poses),
-                "moved": len(incs), "newer_shift": round(shift, 6),
+                "moved": len(incs), "newer_shift": round(shift, 6), "segment_breaks": len(breaks),
                 "newer_scale": round(sim3_scale(C), 6), "error_before": res.error_before,
                 "error_after": res.error_after, "loop_residuals": res.loop_residuals, "seconds": round(dt, 4)}
         rec["correction"] = info
@@ -278,6 +315,7 @@ class LoopCloser:
                                T_on=l.T_on, sigma_pos=l.sigma_pos, sigma_rot=l.sigma_rot,
                                sigma_scale=l.sigma_scale) for l in self.loops],
                 "records": list(self.records), "corrections": list(self.corrections), "stats": dict(self.stats),
+                "segment_starts": sorted(self.segment_starts),
                 "follower": {"seq": f.seq, "seen": f.seen, "keeper": dict(f.keeper)}}
 
     def load_state_dict(self, st: dict) -> None:
@@ -288,6 +326,7 @@ class LoopCloser:
         self.records = list(st["records"])
         self.corrections = list(st.get("corrections", []))
         self.stats.update(st.get("stats", {}))
+        self.segment_starts = {int(x) for x in st.get("segment_starts", [])}
         fs = st["follower"]
         self.follower = PoseFollower(LOOP_SOURCE, self)
         self.follower.seq = int(fs["seq"])
