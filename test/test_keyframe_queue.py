@@ -191,9 +191,11 @@ def test_unacked_keyframes_hold_until_the_mapper_lists_them(tmp_path):
     u.sent(kf(0), now=9.0)                          # a re-send is held once
     assert len(u) == 5 and len(list((tmp_path / "spill").glob("kf-*.pt"))) == 3   # 2 in memory, 3 on disk
     assert u.acknowledged([20]) == 0                # out of order: kept until 10 is acknowledged
+    assert len(u) == 4 and [int(k.stamp_ns) for k in u.pending()] == [10, 30, 40, 50]   # 20 is not re-sent
     assert u.acknowledged([10]) == 2 and len(u) == 3
+    assert u.acknowledged([40]) == 0 and len(u) == 2
     pend = u.pending()
-    assert [int(k.stamp_ns) for k in pend] == [30, 40, 50] and len(u) == 3     # still held
+    assert [int(k.stamp_ns) for k in pend] == [30, 50] and len(u) == 2     # still held
     assert np.allclose(pend[0].image.numpy(), pend[0].image.numpy())
     assert u.overdue(now=10.0, timeout_s=5.0) and not u.overdue(now=3.5, timeout_s=5.0)
     u.restamp(20.0)

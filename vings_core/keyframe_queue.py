@@ -336,7 +336,8 @@ class UnackedKeyframes:
     :class:`KeyframeQueue`), so that a mapper that was down can be given them again.
 
     ``sent(kf)``: one more; ``acknowledged(stamps)``: the mapper holds these (returns how many
-    were released); ``pending()``: the unacknowledged keyframes, oldest first (they stay held);
+    were released); ``pending()``: the unacknowledged keyframes, oldest first (they stay held;
+    those acknowledged out of order are not among them, nor counted by ``len``);
     ``overdue(now, timeout_s)``: whether the oldest waited longer than ``timeout_s``. Stamps are
     released in the order they were sent (the mapper maps in that order); a stamp acknowledged
     out of order is remembered until the older ones are released. One thread.
@@ -374,7 +375,8 @@ class UnackedKeyframes:
         return out
 
     def __len__(self) -> int:
-        return len(self._order)
+        """Keyframes not acknowledged yet (those acknowledged out of order are not counted)."""
+        return sum(1 for s, _ in self._order if s not in self._acked)
 
     def sent(self, kf: Keyframe, now: float) -> None:
         s = int(kf.stamp_ns)
@@ -413,7 +415,7 @@ class UnackedKeyframes:
             kfs.append(msg[1])
         for kf in kfs:                  # back in, in the same order
             self._q.put("kf", kf)
-        return kfs
+        return [kf for kf in kfs if int(kf.stamp_ns) not in self._acked]
 
     def overdue(self, now: float, timeout_s: float) -> bool:
         return bool(self._order) and now - self._order[0][1] > timeout_s

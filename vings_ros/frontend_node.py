@@ -122,6 +122,7 @@ class FrontendNode(StageNode):
         self._unacked_lock = threading.Lock()
         self.keyframes_resent = 0
         self._mapper_up: Optional[bool] = None     # None: never seen; False: seen, then gone
+        self._mapper_gids: set[tuple] = set()       # endpoint ids of the mapper's keyframe list
         self._next_ack_check = 0.0
         self._last_refined = time.monotonic()
         self._refined_seen = False      # the mapper's (latched) keyframe list heard since the start
@@ -174,6 +175,13 @@ class FrontendNode(StageNode):
             self._last_refined = time.monotonic()
             self._refined_seen = True
 
+    def _refined_publishers(self) -> set[tuple]:
+        """Endpoint ids of the publishers of the mapper's keyframe list."""
+        try:
+            return {tuple(i.endpoint_gid) for i in self.get_publishers_info_by_topic(T.REFINED_KEYFRAMES_TOPIC)}
+        except Exception:  # noqa: BLE001 - graph queries fail only while shutting down
+            return set()
+
     def _resend_unacked(self) -> None:
         """Send again the keyframes the mapper has not acknowledged, when a mapper (re)appeared, or
         when the oldest waited ``resend_after_s`` and the mapper listed nothing new for as long (a
@@ -183,9 +191,12 @@ class FrontendNode(StageNode):
         if self.settings.resend_after_s <= 0 or now < self._next_ack_check:
             return
         self._next_ack_check = now + 1.0
-        up = self.count_publishers(T.REFINED_KEYFRAMES_TOPIC) > 0
-        # a mapper that came back after it was gone (the first one to appear gets the keyframes anyway)
-        appeared = up and self._mapper_up is False
+        gids = self._refined_publishers()
+        up = len(gids) > 0
+        # a mapper that came back after it was gone, or a new one while the killed one's endpoint
+        # still lingers in discovery (a new endpoint id); the first one to appear gets the keyframes
+        appeared = up and (self._mapper_up is False or bool(self._mapper_gids and gids - self._mapper_gids))
+        self._mapper_gids = gids
         if self._resend_restored and up and (self._refined_seen or now - self._last_refined > 5.0):
             # restored from the checkpoint: what the mapper has not listed by now is sent again
             appeared, self._resend_restored = True, False
