@@ -23,6 +23,11 @@ Runs are concurrent (the mapper in its thread, as ``vings run``) unless ``--sync
 * ``long``: ``street --loop --length-m 1000 --retrace 0.2 --fps 10`` visual-only with the loop
   closer: the accepted loops' candidate sources (``retrieval`` when the drift exceeded the radius),
   their distance at detection, and the drift figures.
+* ``rejoin``: ``room --route return`` with the lens covered (``--blind``) for ``--blind-s`` seconds
+  in the middle, visual-only: tracking is lost and a new map segment starts, anchored at a guess.
+  With the loop closer told of the segment (the default) and with it not told: segments, loops
+  accepted and whether one crosses the segment start, and ATE Sim(3) of every keyframe of every
+  segment under one alignment (one world frame) against ATE of each segment aligned on its own.
 * ``cost``: the correction of a map of >= 100 k Gaussians (some passive): the pose exchange's
   increments applied by the mapper and the retrain with its prune, timed.
 
@@ -364,6 +369,44 @@ def exp_cost(a) -> dict:
             "retrain_s": round(t_re, 3), "total_s": round(t_apply + t_re, 3), **re}
 
 
+def exp_rejoin(a) -> dict:
+    from vings_core.eval.traj import evaluate_trajectory
+    from vings_core.loop import LoopCloser
+    out = {}
+    for seed in a.seeds:
+        dur = a.room_frames / 20.0
+        b0 = round(0.45 * dur, 2)
+        p = _sim("room", f"return_{a.room_frames}_blind{a.blind_s:g}_s{seed}", frames=a.room_frames, seed=seed,
+                 route="return", blind=(b0, b0 + a.blind_s))
+        gt = _gt(p)
+        for told in (True, False):
+            orig = LoopCloser.segment_started
+            if not told:
+                LoopCloser.segment_started = lambda self, stamp_ns: None      # the closer never hears of it
+            try:
+                m, runner = _run(p, "told" if told else "untold", False, True)
+            finally:
+                LoopCloser.segment_started = orig
+            fe = runner.frontend
+            starts = {k: v for k, v in fe.segment_starts().items() if k > 0}
+            kft = fe.keyframe_trajectory()
+            rec = {"segments": len(fe.segments()), "segment_starts": sorted(starts.values()),
+                   "loops_accepted": m.get("loops_accepted"), "keyframes": len(kft)}
+            loops = [r for r in runner.loop.records if r["verdict"] == "accepted"] if runner.loop else []
+            rec["loops_across_a_start"] = sum(1 for r in loops if any(r["older"] < s0 <= r["newer"]
+                                                                     for s0 in starts.values()))
+            rec["kf_ate_sim3_all_m"] = evaluate_trajectory(kft, gt)["ate_sim3_m"] if len(kft) >= 3 else None
+            per = []
+            for seg in fe.segments():
+                t = fe.trajectory(states=("tracking",), segments={seg["index"]})
+                if len(t) >= 3:
+                    per.append(round(evaluate_trajectory(t, gt)["ate_sim3_m"], 4))
+            rec["ate_sim3_per_segment_m"] = per
+            out[f"room_s{seed}_{'told' if told else 'not_told'}"] = rec
+            log(f"rejoin seed {seed} told={told}: {json.dumps(rec)}")
+    return out
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--exp", default="revisit,nofalse,long,cost")
@@ -377,6 +420,7 @@ def main(argv=None) -> int:
     ap.add_argument("--street-fps", type=float, default=10.0)
     ap.add_argument("--open-length", type=float, default=400.0)
     ap.add_argument("--cost-gaussians", type=int, default=120_000)
+    ap.add_argument("--blind-s", type=float, default=0.6, help="rejoin: seconds the lens is covered")
     ap.add_argument("--sync", action="store_true", help="runs with --sync (deterministic, slower)")
     ap.add_argument("--variants", default="loop,noloop", help="revisit: loop,noloop (the runs of each pair)")
     a = ap.parse_args(argv)
@@ -384,7 +428,7 @@ def main(argv=None) -> int:
     SYNC = a.sync
     VARIANTS = tuple(a.variants.split(","))
     table = {"revisit": lambda: exp_revisit(a), "nofalse": lambda: exp_nofalse(a), "long": lambda: exp_long(a),
-             "cost": lambda: exp_cost(a)}
+             "cost": lambda: exp_cost(a), "rejoin": lambda: exp_rejoin(a)}
     return run_selected(ap, a, table, log)
 
 
