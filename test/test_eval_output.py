@@ -535,3 +535,23 @@ def test_a_run_with_a_covered_lens_writes_its_segments(tmp_path):
         assert s["joined_to"] is None
     assert len(read_tum(out / "trajectory.tum")) == main[0]["frames"]
     assert m["frames_unposed"] >= 20 and "frame" in m["frames_unposed_reason"]
+
+
+def test_segments_joined_by_loops_are_one_trajectory():
+    """Segment starts and the loop closer's joins -> which segment joined which, and the group of the
+    main segment that trajectory.tum holds (joins chained through another segment count)."""
+    from types import SimpleNamespace
+
+    from vings_core.pipeline import SlamRunner
+    starts = {0: 100, 1: 200, 2: 300, 3: 400}
+    fe = SimpleNamespace(segment_starts=lambda: dict(starts),
+                         segments=lambda: [{"index": k, "frames": f} for k, f in ((0, 50), (1, 80), (2, 10), (3, 30))])
+    # segment 2 rejoined through a loop to a keyframe of segment 0, segment 1 to one of segment 2
+    fake = SimpleNamespace(frontend=fe, loop=SimpleNamespace(joins={300: 150, 200: 350}))
+    fake.main_segment = lambda: SlamRunner.main_segment(fake)
+    fake.segment_joins = lambda: SlamRunner.segment_joins(fake)
+    assert fake.main_segment() == 1
+    assert SlamRunner.segment_joins(fake) == {2: 0, 1: 2}
+    assert SlamRunner.trajectory_segments(fake) == {0, 1, 2}
+    fake.loop.joins = {}
+    assert SlamRunner.trajectory_segments(fake) == {1}

@@ -734,27 +734,55 @@ class SlamRunner:
             return None
         return max(segs, key=lambda d: (d["frames"], -d["index"]))["index"]
 
+    def segment_joins(self) -> dict[int, int]:
+        """Map segment -> the earlier segment a loop joined it to (its keyframes moved into that
+        segment's world frame; :attr:`LoopCloser.joins`)."""
+        if self.frontend is None or self.loop is None or not self.loop.joins:
+            return {}
+        starts = self.frontend.segment_starts()
+        by_start = {v: k for k, v in starts.items()}
+        out = {}
+        for s0, older in self.loop.joins.items():
+            if s0 in by_start:
+                out[by_start[s0]] = max((k for k, v in starts.items() if v <= older), default=0)
+        return out
+
+    def trajectory_segments(self) -> Optional[set[int]]:
+        """The segments ``trajectory.tum`` holds: the main one (:meth:`main_segment`) and every
+        segment joined to it by loops, directly or through others (one world frame)."""
+        main = self.main_segment()
+        if main is None:
+            return None
+        group, joins = {main}, self.segment_joins()
+        grew = True
+        while grew:
+            grew = False
+            for a, b in joins.items():
+                if (a in group) != (b in group):
+                    group |= {a, b}
+                    grew = True
+        return group
+
     def trajectory(self, segment: Optional[int] = -1) -> Trajectory:
-        """Tracked frames' cam0 ``T_wc``: of the main segment (``segment=-1``, see
-        :meth:`main_segment`: segments are not joined into one frame yet), of one segment, or
-        (``None``) of every segment."""
+        """Tracked frames' cam0 ``T_wc``: of the main segment and those joined to it by loops
+        (``segment=-1``, :meth:`trajectory_segments`), of one segment, or (``None``) of every
+        segment."""
         if self.frontend is None:
             return Trajectory.from_poses(self._gt_poses)
-        if segment == -1:
-            segment = self.main_segment()
-        return self.frontend.trajectory(states=POSED_STATES,
-                                        segments=None if segment is None else {segment})
+        segs = self.trajectory_segments() if segment == -1 else (None if segment is None else {segment})
+        return self.frontend.trajectory(states=POSED_STATES, segments=segs)
 
     def _segment_records(self, gt: Optional[Trajectory]) -> tuple[list[dict], dict[int, Trajectory]]:
         """``segments.json`` entries (the front end's segments, whether each is in
         ``trajectory.tum``, its ATE Sim(3) against ``gt`` when there are 3 frames or more) and each
         segment's trajectory by index."""
-        main = self.main_segment()
+        group = self.trajectory_segments() or set()
+        joins = self.segment_joins()
         out, trajs = [], {}
         for d in self.frontend.segments():
             k = d["index"]
             trajs[k] = self.trajectory(k)
-            rec = dict(d, joined_to=None, in_trajectory=k == main, ate_sim3_m=None)
+            rec = dict(d, joined_to=joins.get(k), in_trajectory=k in group, ate_sim3_m=None)
             if gt is not None and d["frames"] >= 3:
                 try:
                     rec["ate_sim3_m"] = evaluate_trajectory(trajs[k], gt).get("ate_sim3_m")
@@ -831,10 +859,10 @@ class SlamRunner:
             m.update(segments=len(segments),
                      ate_segments_m=[d["ate_sim3_m"] for d in segments] if gt is not None else None)
             if len(segments) > 1:
-                main = next(d["index"] for d in segments if d["in_trajectory"])
-                log.warning("tracking was lost: %d map segments; trajectory.tum holds segment %s "
-                            "(%d frames), trajectory_segments/ each one in its own frame",
-                            len(segments), main, len(traj))
+                held = sorted(d["index"] for d in segments if d["in_trajectory"])
+                log.warning("tracking was lost: %d map segments; trajectory.tum holds segment(s) %s "
+                            "(%d frames; more than one: rejoined by loops), trajectory_segments/ each one",
+                            len(segments), held, len(traj))
         images, renders = self._image_metrics(kf_traj, traj)
         m.update(images)
         return {"traj": traj, "kf_traj": kf_traj, "metrics": m, "renders": renders, "segments": segments,

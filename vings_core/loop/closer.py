@@ -76,6 +76,8 @@ class LoopCloser:
         self._verified: list[tuple[int, int]] = []     # (keyframe, candidate) indices awaiting confirmation
         #: first frames of the front end's map segments after the first (segment_started)
         self.segment_starts: set[int] = set()
+        #: segment start -> the older keyframe of the first loop across it (the segment rejoined)
+        self.joins: dict[int, int] = {}
         self.stats = dict(keyframes=0, candidates_checked=0, rejected=0, accepted=0,
                           detect_s=0.0, correct_s=0.0, max_detect_s=0.0)
 
@@ -264,6 +266,9 @@ class LoopCloser:
         t0 = time.perf_counter()
         cfg = self.cfg
         self.loops.append(loop)
+        for s0 in self.segment_starts:
+            if loop.older < s0 <= loop.newer:
+                self.joins.setdefault(s0, loop.older)
         mode = GraphMode.SE3 if self._se3() else GraphMode.SIM3
         poses = {e.stamp_ns: e.T_wc for e in self.db.entries}
         edges = [LoopEdge(l.older, l.newer, l.T_on if mode == GraphMode.SIM3 else _rigid(l.T_on),
@@ -315,7 +320,7 @@ class LoopCloser:
                                T_on=l.T_on, sigma_pos=l.sigma_pos, sigma_rot=l.sigma_rot,
                                sigma_scale=l.sigma_scale) for l in self.loops],
                 "records": list(self.records), "corrections": list(self.corrections), "stats": dict(self.stats),
-                "segment_starts": sorted(self.segment_starts),
+                "segment_starts": sorted(self.segment_starts), "joins": dict(self.joins),
                 "follower": {"seq": f.seq, "seen": f.seen, "keeper": dict(f.keeper)}}
 
     def load_state_dict(self, st: dict) -> None:
@@ -327,6 +332,7 @@ class LoopCloser:
         self.corrections = list(st.get("corrections", []))
         self.stats.update(st.get("stats", {}))
         self.segment_starts = {int(x) for x in st.get("segment_starts", [])}
+        self.joins = {int(a): int(b) for a, b in st.get("joins", {}).items()}
         fs = st["follower"]
         self.follower = PoseFollower(LOOP_SOURCE, self)
         self.follower.seq = int(fs["seq"])
