@@ -43,6 +43,9 @@ RENDER_DEPTH_TOPIC = "/vings/render/depth"
 RENDER_NORMAL_TOPIC = "/vings/render/normal"
 MAP_POINTS_TOPIC = "/vings/map/points"
 REFINED_KEYFRAMES_TOPIC = "/vings/keyframes/refined"
+#: nav_msgs/Path (latched) of the keyframes in the mapper's last checkpoint (published only by a
+#: mapper with a checkpoint): what survives a crash of the mapper
+CHECKPOINTED_KEYFRAMES_TOPIC = "/vings/keyframes/checkpointed"
 #: pose-exchange batches of stage ``<source>`` (nav_msgs/Path, wire format in msg_adapters/exchange.py):
 #: ``EXCHANGE_TOPIC_PREFIX + source``; the front end's are ``/vings/exchange/frontend``
 EXCHANGE_TOPIC_PREFIX = "/vings/exchange/"

@@ -62,6 +62,22 @@ res["resent_to_new"] = sorted(m2.got)
 m2.ack(kfs)
 assert wait_for(lambda: len(fe.unacked) == 0, 20)
 res["resent"] = fe.keyframes_resent
+# a mapper with a checkpoint: the front end releases only the keyframes its checkpoint holds
+ckpub = m2.create_publisher(Path, T.CHECKPOINTED_KEYFRAMES_TOPIC, T.latched_qos(1))
+assert wait_for(lambda: fe.count_publishers(T.CHECKPOINTED_KEYFRAMES_TOPIC) > 0, 20)
+more = [keyframe(i, pose(0.03 * i, 0.0), pose(0.03 * i, 0.0), cam) for i in range(3, 5)]
+fe._publish_keyframes(more)
+assert wait_for(lambda: len(m2.got) >= 4, 20)
+m2.ack(kfs + more)              # mapped ...
+time.sleep(2.0)
+res["held_until_checkpointed"] = len(fe.unacked)
+def ck(ks):
+    ckpub.publish(trajectory_to_path(Trajectory(np.array([int(k.stamp_ns) for k in ks]),
+                                                np.stack([k.T_wc.numpy() for k in ks]))))
+ck(kfs + more[:1])              # ... but only the first of them checkpointed
+assert wait_for(lambda: len(fe.unacked) == 1, 20), len(fe.unacked)
+ck(kfs + more)
+assert wait_for(lambda: len(fe.unacked) == 0, 20), len(fe.unacked)
 res["values"] = {k: fe.diagnostics().values[k] for k in ("keyframes_unacknowledged", "keyframes_resent")}
 # odometry published before a subscriber exists reaches one that asks for transient_local durability
 from nav_msgs.msg import Odometry
@@ -88,3 +104,4 @@ def test_frontend_sends_unacknowledged_keyframes_to_a_restarted_mapper():
     assert res["resent_to_new"] == [2 * 10 ** 9, 3 * 10 ** 9]
     assert res["resent"] >= 2 and res["values"] == {"keyframes_unacknowledged": 0, "keyframes_resent": res["resent"]}
     assert res["late_odometry"] == [100, 101, 102, 103, 104]
+    assert res["held_until_checkpointed"] == 2

@@ -128,6 +128,7 @@ class FrontendNode(StageNode):
         self._refined_seen = False      # the mapper's (latched) keyframe list heard since the start
         self.sub_refined = self.create_subscription(Path, T.REFINED_KEYFRAMES_TOPIC, self._on_refined,
                                                     T.latched_qos(1))
+        self.create_subscription(Path, T.CHECKPOINTED_KEYFRAMES_TOPIC, self._on_checkpointed, T.latched_qos(1))
         # a restart: the checkpoint's front end, decided on at the first new image (RestartMode)
         self.restart = RestartMode.FRESH
         self.restart_gap_s: Optional[float] = None
@@ -164,16 +165,30 @@ class FrontendNode(StageNode):
         self.queue.put(msg)
 
     def _on_refined(self, msg: Path) -> None:
-        """The mapper's keyframes: every stamp listed is acknowledged."""
+        """The mapper's keyframes: every stamp listed is acknowledged, unless the mapper keeps a
+        checkpoint (it publishes what it holds there, :meth:`_on_checkpointed`)."""
         try:
             stamps = path_to_trajectory(msg, T.REFINED_KEYFRAMES_TOPIC).stamps_ns.tolist()
         except InputError as e:
             self.get_logger().warning(f"{T.REFINED_KEYFRAMES_TOPIC}: ignored ({e})", throttle_duration_sec=10.0)
             return
+        durable = self.count_publishers(T.CHECKPOINTED_KEYFRAMES_TOPIC) > 0
         with self._unacked_lock:
-            self.unacked.acknowledged(stamps)
+            if not durable:         # a mapper without a checkpoint: what it lists is all there is
+                self.unacked.acknowledged(stamps)
             self._last_refined = time.monotonic()
             self._refined_seen = True
+
+    def _on_checkpointed(self, msg: Path) -> None:
+        """The keyframes in the mapper's last checkpoint: those survive a crash of the mapper, so
+        only they are released (a mapper with a checkpoint)."""
+        try:
+            stamps = path_to_trajectory(msg, T.CHECKPOINTED_KEYFRAMES_TOPIC).stamps_ns.tolist()
+        except InputError as e:
+            self.get_logger().warning(f"{T.CHECKPOINTED_KEYFRAMES_TOPIC}: ignored ({e})", throttle_duration_sec=10.0)
+            return
+        with self._unacked_lock:
+            self.unacked.acknowledged(stamps)
 
     def _refined_publishers(self) -> set[tuple]:
         """Endpoint ids of the publishers of the mapper's keyframe list."""
