@@ -586,8 +586,11 @@ def exp_hosts_apart(work: Path, args) -> dict:
         emitted = set(int(s) for s in fe.keyframe_trajectory().stamps_ns)
         kfs = Mapper.load_checkpoint(ck).keyframe_poses() if ck.exists() else {}
         stored = {int(f.stem.split("-")[2]) for f in (ck.parent / (ck.name + ".queue")).glob("kf-*.pt")}
-        rec = {"replay_rc": rep.returncode, "emitted": len(emitted), "mapped": len(emitted & set(kfs)),
-               "stored": len(emitted & stored), "missing": len(emitted - set(kfs) - stored),
+        kept = {int(f.stem.split("-")[1]) for f in Path(f"{ck}.frontend.unacked").glob("kf-*.pt")}
+        got = set(kfs) | stored
+        rec = {"replay_rc": rep.returncode, "emitted": len(emitted), "received": len(emitted & got),
+               "mapped": len(emitted & set(kfs)), "stored": len(emitted & stored - set(kfs)),
+               "kept_by_frontend": len(emitted & kept - got), "lost": len(emitted - got - kept),
                "wall_s": round(wall, 1)}
         if len(kfs) >= 3:
             rec["kf_ate_sim3_m"] = evaluate_trajectory(Trajectory.from_poses(kfs), gt)["ate_sim3_m"]

@@ -53,6 +53,8 @@ from .render_client import RenderClient
 
 #: consecutive skipped images after which /diagnostics reports an error
 BAD_STREAK_ERROR = 5
+#: at the stop: how long the last keyframe packets may take to be confirmed by their readers (s)
+FLUSH_TIMEOUT_S = 5.0
 
 
 class FrontendNode(StageNode):
@@ -658,7 +660,24 @@ class FrontendNode(StageNode):
             self._exchange_send()
             self._publish_keyframes(kfs)
             self._publish_path()
-            time.sleep(0.2)  # let reliable writers hand the last packets over
+            self._flush_keyframes(FLUSH_TIMEOUT_S)
+
+    def _flush_keyframes(self, timeout_s: float) -> None:
+        """Wait (at most ``timeout_s``) until every subscriber of the keyframe topics confirmed the
+        packets in flight: a reliable writer that goes away drops what its readers had not fetched
+        (a keyframe still lost waits in ``<checkpoint>.unacked/`` for the next front end)."""
+        from rclpy.duration import Duration
+        deadline = time.monotonic() + timeout_s
+        for part, pub in self.pub_kf.items():
+            left = max(0.0, deadline - time.monotonic())
+            try:
+                if not pub.wait_for_all_acked(Duration(nanoseconds=int(left * 1e9))):
+                    self.get_logger().warning(f"not every subscriber of {pub.topic_name} confirmed the last "
+                                              f"keyframes within {timeout_s:g} s")
+                    return
+            except Exception as e:  # noqa: BLE001 - best effort while stopping
+                self.get_logger().debug(f"wait_for_all_acked: {e}")
+                return
 
     def close(self) -> None:
         with self._unacked_lock:
