@@ -138,7 +138,7 @@ def _run(tmp_path: Path, max_gap: float, offset: int, mapper: bool = False) -> d
 def test_a_killed_front_end_resumes_from_its_checkpoint(tmp_path):
     res = _run(tmp_path, 3.0, 17)
     assert res["replay_rc"] == 0, res["replay_log"]
-    assert "came back 1 time" in res["replay_log"]
+    assert "the front end came back" in res["replay_log"], res["replay_log"]
     assert res["restart"] == "resumed" and float(res["gap"]) <= 3.0, res
     assert res["ckpt"] and res["odom_after"] >= 30
     # the poses after the restart continue the same trajectory: one Sim(3) fits all of them
