@@ -35,6 +35,7 @@ import torch
 
 from .errors import VingsError
 from .types import CameraModel, Keyframe
+from .util import atomic_write
 
 SPILL_VERSION = 1
 _NAME = re.compile(r"^kf-(\d{9})-(\d+)\.pt$")
@@ -385,11 +386,7 @@ class UnackedKeyframes:
         self._q.put("kf", kf)
         self._order.append((s, float(now)))
         if self.keep_dir is not None:
-            self.keep_dir.mkdir(parents=True, exist_ok=True)
-            path = self._kept(s)
-            tmp = path.with_name(f".{path.name}.tmp")
-            torch.save(keyframe_to_dict(kf), tmp)
-            os.replace(tmp, path)
+            atomic_write(self._kept(s), lambda tmp: torch.save(keyframe_to_dict(kf), tmp))
 
     def acknowledged(self, stamps) -> int:
         self._acked.update(int(s) for s in stamps)

@@ -47,7 +47,7 @@ from vings_core.vio.fusion import ViFusion
 
 from . import registry
 from .node_base import BatchInbox, Level, NodeStatus, StageNode
-from .node_common import RateMeter, worth_reporting as _report
+from .node_common import RateMeter, publisher_ids, worth_reporting as _report
 from .node_config import FrontendNodeConfig, QueuePolicy
 from .render_client import RenderClient
 
@@ -166,13 +166,19 @@ class FrontendNode(StageNode):
     def _on_image(self, msg: Image) -> None:
         self.queue.put(msg)
 
+    def _listed(self, msg: Path, topic: str) -> Optional[list[int]]:
+        """The keyframe stamps a mapper's list (``nav_msgs/Path``) names; None (warned) if malformed."""
+        try:
+            return path_to_trajectory(msg, topic).stamps_ns.tolist()
+        except InputError as e:
+            self.get_logger().warning(f"{topic}: ignored ({e})", throttle_duration_sec=10.0)
+            return None
+
     def _on_refined(self, msg: Path) -> None:
         """The mapper's keyframes: every stamp listed is acknowledged, unless the mapper keeps a
         checkpoint (it publishes what it holds there, :meth:`_on_checkpointed`)."""
-        try:
-            stamps = path_to_trajectory(msg, T.REFINED_KEYFRAMES_TOPIC).stamps_ns.tolist()
-        except InputError as e:
-            self.get_logger().warning(f"{T.REFINED_KEYFRAMES_TOPIC}: ignored ({e})", throttle_duration_sec=10.0)
+        stamps = self._listed(msg, T.REFINED_KEYFRAMES_TOPIC)
+        if stamps is None:
             return
         durable = self.count_publishers(T.CHECKPOINTED_KEYFRAMES_TOPIC) > 0
         with self._unacked_lock:
@@ -184,20 +190,11 @@ class FrontendNode(StageNode):
     def _on_checkpointed(self, msg: Path) -> None:
         """The keyframes in the mapper's last checkpoint: those survive a crash of the mapper, so
         only they are released (a mapper with a checkpoint)."""
-        try:
-            stamps = path_to_trajectory(msg, T.CHECKPOINTED_KEYFRAMES_TOPIC).stamps_ns.tolist()
-        except InputError as e:
-            self.get_logger().warning(f"{T.CHECKPOINTED_KEYFRAMES_TOPIC}: ignored ({e})", throttle_duration_sec=10.0)
+        stamps = self._listed(msg, T.CHECKPOINTED_KEYFRAMES_TOPIC)
+        if stamps is None:
             return
         with self._unacked_lock:
             self.unacked.acknowledged(stamps)
-
-    def _refined_publishers(self) -> set[tuple]:
-        """Endpoint ids of the publishers of the mapper's keyframe list."""
-        try:
-            return {tuple(i.endpoint_gid) for i in self.get_publishers_info_by_topic(T.REFINED_KEYFRAMES_TOPIC)}
-        except Exception:  # noqa: BLE001 - graph queries fail only while shutting down
-            return set()
 
     def _resend_unacked(self) -> None:
         """Send again the keyframes the mapper has not acknowledged, when a mapper (re)appeared, or
@@ -208,7 +205,7 @@ class FrontendNode(StageNode):
         if self.settings.resend_after_s <= 0 or now < self._next_ack_check:
             return
         self._next_ack_check = now + 1.0
-        gids = self._refined_publishers()
+        gids = publisher_ids(self, T.REFINED_KEYFRAMES_TOPIC)
         up = len(gids) > 0
         # a mapper that came back after it was gone, or a new one while the killed one's endpoint
         # still lingers in discovery (a new endpoint id); the first one to appear gets the keyframes

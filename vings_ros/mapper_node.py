@@ -134,9 +134,7 @@ class MapperNode(StageNode):
         # with a checkpoint: which keyframes it holds (the front end releases only those)
         self.pub_checkpointed = (self.create_publisher(Path, T.CHECKPOINTED_KEYFRAMES_TOPIC, T.latched_qos(1))
                                  if self.checkpoint_file is not None else None)
-        poses = self.mapper.keyframe_poses()
-        if self.pub_checkpointed is not None and poses:     # resumed: the checkpoint holds these
-            self.pub_checkpointed.publish(trajectory_to_path(Trajectory.from_poses(poses), self.ros.world_frame))
+        self._publish_checkpointed()        # resumed: the checkpoint holds these
         self.pub_markers = self.create_publisher(MarkerArray, T.MARKERS_TOPIC, T.latched_qos(1))
         self.pub_reply = {p: self.create_publisher(Image, topic, sq(T.OUTPUT_DEPTH)) for p, topic in REPLY_TOPICS.items()}
         self.create_subscription(PoseStamped, RENDER_REQUEST_TOPIC, self._on_render_request, sq(T.OUTPUT_DEPTH))
@@ -438,10 +436,13 @@ class MapperNode(StageNode):
 
     def write_checkpoint(self, path: FilePath) -> str:
         self.mapper.save_checkpoint(path)
-        poses = self.mapper.keyframe_poses()
-        if self.pub_checkpointed is not None and poses:
-            self.pub_checkpointed.publish(trajectory_to_path(Trajectory.from_poses(poses), self.ros.world_frame))
-        return f"{len(poses)} keyframes, {self.mapper.num_gaussians} Gaussians"
+        self._publish_checkpointed()
+        return f"{len(self.mapper.keyframe_poses())} keyframes, {self.mapper.num_gaussians} Gaussians"
+
+    def _publish_checkpointed(self) -> None:
+        """With a checkpoint: the keyframes it holds (as written last, or resumed from)."""
+        if self.pub_checkpointed is not None and self.mapper.keyframe_poses():
+            self.pub_checkpointed.publish(trajectory_to_path(self._kf_traj(), self.ros.world_frame))
 
     def checkpoint_ready(self) -> bool:
         return bool(self.mapper.keyframe_poses())

@@ -133,6 +133,15 @@ def check_parameters(files: list[str], rules: dict[str, str], where: str,
     return sections
 
 
+def publisher_ids(node: Any, topic: str) -> set[tuple]:
+    """Endpoint ids of the publishers of ``topic`` now: a restarted node shows up as a new id even
+    while the killed process's endpoint still lingers in discovery (empty while shutting down)."""
+    try:
+        return {tuple(i.endpoint_gid) for i in node.get_publishers_info_by_topic(topic)}
+    except Exception:  # noqa: BLE001 - graph queries fail only while shutting down
+        return set()
+
+
 def worth_reporting(count: int) -> bool:
     """Rate limit for repeated warnings: the 1st, the 20th, then every 200th occurrence."""
     return count in (1, 20) or count % 200 == 0

@@ -327,13 +327,9 @@ class Replayer:
         self.stats.startup_wait_s = time.monotonic() - t0
 
     def _ack_publishers(self) -> set[tuple]:
-        """The endpoint ids of the acknowledgement publishers now (a restarted front end has a new
-        one; the dead one's may linger until discovery drops it)."""
-        try:
-            infos = self.node.get_publishers_info_by_topic(self.sub_ack.topic_name)
-        except Exception:  # noqa: BLE001 - graph queries fail only while shutting down
-            return set()
-        return {tuple(i.endpoint_gid) for i in infos}
+        """The endpoint ids of the acknowledgement publishers now (a restarted front end has a new one)."""
+        from .node_common import publisher_ids
+        return publisher_ids(self.node, self.sub_ack.topic_name)
 
     def _wait_ack(self, frame: Frame) -> None:
         """Wait for the acknowledgement of ``frame``. A front end that went away (its acknowledgement

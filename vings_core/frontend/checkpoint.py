@@ -27,7 +27,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, Optional
 
 from ..errors import InputError
-from ..util import atomic_write
+from ..util import atomic_write_bytes
 from .config import FrontendConfig
 from .flow import FlowEstimator
 
@@ -95,12 +95,9 @@ def save_frontend_checkpoint(path: str | os.PathLike, state: dict[str, Any], ext
     doc = {"format": FORMAT, "version": VERSION, "camera": fe.camera.to_dict(),
            "last_stamp_ns": fe.last_stamp_ns, "written_unix_s": time.time(), "extra": extra or {},
            "state": buf.getvalue()}
-
-    def write(tmp: str) -> None:
-        with open(tmp, "wb") as f:
-            pickle.dump(doc, f, protocol=5)
-    atomic_write(path, write)
-    return Path(path).stat().st_size
+    data = pickle.dumps(doc, protocol=5)
+    atomic_write_bytes(path, data)
+    return len(data)
 
 
 def load_frontend_checkpoint(path: str | os.PathLike, config: FrontendConfig,

@@ -29,7 +29,8 @@ def check_keyframe(kf: Keyframe, known: dict[int, object], camera: Optional[Came
     """Raise :class:`InputError` unless ``kf`` can be added: a new stamp (not in ``known``; an older
     stamp than the newest known is fine: a keyframe sent again after a mapper restart), an
     undistorted camera equal to ``camera`` (the first keyframe's; None before it), float RGB in
-    [0, 1], depth / variance / validity of the image's size, finite depth, non-negative variance and a rigid ``T_wc``."""
+    [0, 1], depth / variance / validity of the image's size, finite depth, non-negative variance
+    and a rigid ``T_wc``."""
     if not isinstance(kf, Keyframe):
         raise InputError(f"add_keyframe: expected a Keyframe, got {type(kf).__name__}")
     if int(kf.stamp_ns) in known:
