@@ -29,6 +29,13 @@ Experiments (``--exp``, comma list):
   keyframes emitted vs received by the mapper (its checkpoint plus those stored beside it), ATE
   Sim(3) of the mapper's keyframes and of the front end's trajectory. Needs root and iproute2.
 
+* ``discovery``: how soon a node that starts (or is respawned) next to a running subscriber is
+  heard, with ``--load`` busy processes on the CPU (default 2: this machine's cores, as while a
+  graph is busy): a child publishes a std_msgs/Header every 50 ms from the moment its publisher
+  exists; the subscriber records which message came first; ``--trials`` children per profile. The
+  shipped Fast DDS profile (``vings_ros/config/fastdds_shm.xml``) against the same profile without
+  its discovery settings (Fast DDS's: 5 initial announcements, then one every 3 s).
+
 The last stdout line is one JSON object keyed by experiment (``benchmarks/_harness.py``).
 """
 from __future__ import annotations
@@ -601,6 +608,105 @@ def exp_hosts_apart(work: Path, args) -> dict:
     return out
 
 
+_DISCOVERY_PUB = r"""
+import sys, time
+from vings_ros.ros_env import apply_ros_environment
+apply_ros_environment(domain_id=int(sys.argv[1]))
+import rclpy
+from std_msgs.msg import Header
+from msg_adapters import topics as T
+rclpy.init()
+node = rclpy.create_node("bench_discovery_pub")
+pub = node.create_publisher(Header, "/bench/discovery", T.sensor_qos(10))
+for i in range(int(sys.argv[2])):
+    pub.publish(Header(frame_id=str(i)))
+    time.sleep(0.05)
+"""
+
+_DISCOVERY_SUB = r"""
+import json, subprocess, sys, threading, time
+from vings_ros.ros_env import apply_ros_environment
+dom, trials, count = sys.argv[1], int(sys.argv[2]), int(sys.argv[3])
+apply_ros_environment(domain_id=int(dom))
+import rclpy
+from rclpy.executors import SingleThreadedExecutor
+from std_msgs.msg import Header
+from msg_adapters import topics as T
+rclpy.init()
+node = rclpy.create_node("bench_discovery_sub")
+got = []
+node.create_subscription(Header, "/bench/discovery", lambda m: got.append(int(m.frame_id)), T.sensor_qos(10))
+stop = threading.Event()
+def spin():
+    ex = SingleThreadedExecutor(); ex.add_node(node)
+    while not stop.is_set():
+        ex.spin_once(timeout_sec=0.02)
+threading.Thread(target=spin, daemon=True).start()
+first = []
+for _ in range(trials):
+    got.clear()
+    subprocess.run([sys.executable, "-c", sys.argv[4], dom, str(count)], check=True)
+    first.append(got[0] if got else None)
+    time.sleep(1.0)
+stop.set()
+print("FIRST " + json.dumps(first), flush=True)
+"""
+
+
+def _busy(seconds: float) -> None:
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)   # not the harness's (a forked copy)
+    t_end = time.monotonic() + seconds
+    while time.monotonic() < t_end:
+        sum(i * i for i in range(10000))
+
+
+def exp_discovery(work: Path, args) -> dict:
+    """Seconds from a publisher's creation until a running subscriber hears it, per Fast DDS
+    profile (the shipped one; the same without its discovery settings), with ``--load`` busy
+    processes beside them."""
+    import multiprocessing as mp
+    import re
+
+    import numpy as np
+
+    from vings_ros.ros_env import cleanup_fastdds_shm, shm_profile_path, shm_snapshot
+    shipped = shm_profile_path()
+    plain = work / "fastdds_no_discovery_settings.xml"
+    text = shipped.read_text()
+    stripped = re.sub(r"<builtin>.*?</builtin>", "", text, flags=re.S)
+    if stripped == text:
+        raise RuntimeError(f"{shipped}: no <builtin> discovery block to compare against")
+    plain.write_text(stripped)
+    period, count = 0.05, 100
+    out: dict = {"load_processes": args.load, "trials": args.trials, "publish_period_s": period}
+    for name, prof in (("shipped", shipped), ("fastdds_default_discovery", plain)):
+        hogs = [mp.Process(target=_busy, args=(3600.0,), daemon=True) for _ in range(args.load)]
+        for h in hogs:
+            h.start()
+        snap = shm_snapshot()
+        try:
+            env = dict(os.environ, PYTHONPATH=str(REPO), FASTRTPS_DEFAULT_PROFILES_FILE=str(prof))
+            p = subprocess.run([sys.executable, "-c", _DISCOVERY_SUB, str(args.domain), str(args.trials),
+                                str(count), _DISCOVERY_PUB], env=env, cwd=REPO, capture_output=True,
+                               text=True, timeout=60 + args.trials * 30)
+        finally:
+            for h in hogs:
+                h.terminate()
+            cleanup_fastdds_shm(snap)
+        line = next((ln for ln in p.stdout.splitlines() if ln.startswith("FIRST ")), None)
+        if line is None:
+            raise RuntimeError(f"{name}: the discovery child failed (rc {p.returncode}): {p.stderr[-1500:]}")
+        first = json.loads(line[len("FIRST "):])
+        heard = np.array([f * period for f in first if f is not None])
+        rec = {"first_heard_s": [round(float(v), 2) for v in heard], "never_heard": sum(f is None for f in first)}
+        if len(heard):
+            rec.update(median_s=round(float(np.median(heard)), 2), p90_s=round(float(np.quantile(heard, 0.9)), 2),
+                       max_s=round(float(heard.max()), 2))
+        out[name] = rec
+        _log(name, json.dumps(rec))
+    return out
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--exp", default="launcher_kill,ctrl_c")
@@ -614,14 +720,15 @@ def main() -> int:
     ap.add_argument("--iters", type=int, default=150, help="mapping.iters_per_keyframe (a slow mapper)")
     ap.add_argument("--behind", type=int, default=8, help="ctrl_c: stop when the mapper is this far behind")
     ap.add_argument("--nodes", default="mapper_node,eraser_node,loop_closer_node,frontend_node")
-    ap.add_argument("--trials", type=int, default=3)
+    ap.add_argument("--trials", type=int, default=3, help="node_kill: trials per node; discovery: per profile")
+    ap.add_argument("--load", type=int, default=2, help="discovery: busy processes beside it")
     ap.add_argument("--timeout", type=float, default=1200.0)
     ap.add_argument("--domain", type=int, default=140 + os.getpid() % 60)
     args = ap.parse_args()
     work = Path(os.environ.get("TMPDIR", tempfile.gettempdir())) / "vings_bench_faults"
     work.mkdir(parents=True, exist_ok=True)
     fns = {"launcher_kill": exp_launcher_kill, "ctrl_c": exp_ctrl_c, "node_kill": exp_node_kill,
-           "bad_input": exp_bad_input, "hosts_apart": exp_hosts_apart}
+           "bad_input": exp_bad_input, "hosts_apart": exp_hosts_apart, "discovery": exp_discovery}
     names = [e.strip() for e in args.exp.split(",") if e.strip()]
     bad = [n for n in names if n not in fns]
     if bad:

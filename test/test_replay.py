@@ -171,6 +171,7 @@ class Listener:
         self.ex.shutdown(timeout_sec=1.0)
         self.node.destroy_node()
         self.ctx.try_shutdown()
+        self.ctx.destroy()      # the participant goes now, not when the context is collected
 
 
 @pytest.fixture

@@ -266,6 +266,7 @@ class Replayer:
             finally:
                 if ctx.ok():
                     ctx.try_shutdown()
+                ctx.destroy()       # the DDS participant goes now (its shared-memory ports with it)
                 self._ctx = None
 
     def _on_ack(self, msg) -> None:
