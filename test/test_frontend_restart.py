@@ -19,7 +19,7 @@ pytestmark = pytest.mark.ros
 REPO = Path(__file__).resolve().parent.parent
 
 SCRIPT = r"""
-import json, os, signal, subprocess, sys, threading, time
+import json, os, signal, subprocess, sys, time
 from pathlib import Path
 import numpy as np
 work, dom, max_gap, with_mapper = Path(sys.argv[1]), sys.argv[2], sys.argv[3], sys.argv[4] == "1"
@@ -35,7 +35,7 @@ gt = open_source(str(mcap)).gt_camera_trajectory()
 from vings_ros.ros_env import apply_ros_environment
 apply_ros_environment(domain_id=int(dom))
 import rclpy
-from rclpy.executors import SingleThreadedExecutor
+from vings_ros.node_common import spin_in_background
 from diagnostic_msgs.msg import DiagnosticArray
 from nav_msgs.msg import Odometry
 from msg_adapters import topics as T
@@ -58,12 +58,7 @@ def on_diag(m):
 # can take seconds on a loaded machine, and its odometry history is delivered once it matches
 node.create_subscription(Odometry, T.ODOMETRY_TOPIC, on_odom, T.odometry_qos())
 node.create_subscription(DiagnosticArray, T.DIAGNOSTICS_TOPIC, on_diag, T.sensor_qos(50))
-stop = threading.Event()
-def spin():
-    ex = SingleThreadedExecutor(); ex.add_node(node)
-    while not stop.is_set():
-        ex.spin_once(timeout_sec=0.02)
-threading.Thread(target=spin, daemon=True).start()
+stop_spinning = spin_in_background(node)
 
 mark = f"restart{os.getpid()}"
 env = dict(os.environ, VINGS_TEST_MARK=mark)
@@ -118,7 +113,7 @@ res = {"replay_rc": rc, "restart": diag.get("restart"), "outcome": diag.get("res
        "frontend_diag": {k: diag.get(k) for k in ("state", "frames", "keyframes")}}
 os.killpg(launch.pid, signal.SIGINT)
 launch.wait(120)
-stop.set()
+stop_spinning()
 st = np.array(sorted(odom))
 traj = Trajectory(st, np.stack([odom[s] for s in st]))
 res["ate_sim3_m"] = evaluate_trajectory(traj, gt)["ate_sim3_m"]

@@ -142,6 +142,28 @@ def publisher_ids(node: Any, topic: str) -> set[tuple]:
         return set()
 
 
+def spin_in_background(node: Any, period_s: float = 0.02) -> Callable[[], None]:
+    """Spin ``node`` in a daemon thread with its own ``SingleThreadedExecutor`` (probes, tools and
+    benchmarks that wait in their main thread); returns the function that stops it."""
+    from rclpy.executors import SingleThreadedExecutor   # lazy: no rclpy import at module load
+    stop = threading.Event()
+
+    def spin() -> None:
+        ex = SingleThreadedExecutor()
+        ex.add_node(node)
+        while not stop.is_set():
+            ex.spin_once(timeout_sec=period_s)
+        ex.shutdown()
+
+    th = threading.Thread(target=spin, name=f"spin-{node.get_name()}", daemon=True)
+    th.start()
+
+    def stop_spinning() -> None:
+        stop.set()
+        th.join(5.0)
+    return stop_spinning
+
+
 def worth_reporting(count: int) -> bool:
     """Rate limit for repeated warnings: the 1st, the 20th, then every 200th occurrence."""
     return count in (1, 20) or count % 200 == 0
