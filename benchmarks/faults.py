@@ -50,7 +50,6 @@ import signal
 import subprocess
 import sys
 import tempfile
-import threading
 import time
 from pathlib import Path
 
@@ -142,26 +141,16 @@ class _Listener:
             e = odometry_to_estimate(m, T.ODOMETRY_TOPIC)
             self.odom[int(e.stamp_ns)] = e.T_wc
         self.node.create_subscription(Odometry, T.ODOMETRY_TOPIC, odom, T.latched_qos(500))
-        self._stop = threading.Event()
-        self._th = threading.Thread(target=self._spin, daemon=True)
-        self._th.start()
+        from vings_ros.node_common import spin_in_background
+        self._stop_spinning = spin_in_background(self.node, 0.05)
 
     def _diag(self, msg) -> None:
         for s in msg.status:
             self.heard[s.name] = time.monotonic()
             self.values[s.name] = {kv.key: kv.value for kv in s.values}
 
-    def _spin(self) -> None:
-        from rclpy.executors import SingleThreadedExecutor
-        ex = SingleThreadedExecutor()
-        ex.add_node(self.node)
-        while not self._stop.is_set():
-            ex.spin_once(timeout_sec=0.05)
-        ex.shutdown()
-
     def close(self) -> None:
-        self._stop.set()
-        self._th.join(5)
+        self._stop_spinning()
         self.node.destroy_node()
         self.rclpy.shutdown()
 

@@ -47,7 +47,7 @@ from vings_core.vio.fusion import ViFusion
 
 from . import registry
 from .node_base import BatchInbox, Level, NodeStatus, StageNode
-from .node_common import RateMeter, publisher_ids, worth_reporting as _report
+from .node_common import RateMeter, publisher_ids, wait_all_acked, worth_reporting as _report
 from .node_config import FrontendNodeConfig, QueuePolicy
 from .render_client import RenderClient
 
@@ -663,18 +663,10 @@ class FrontendNode(StageNode):
         """Wait (at most ``timeout_s``) until every subscriber of the keyframe topics confirmed the
         packets in flight: a reliable writer that goes away drops what its readers had not fetched
         (a keyframe still lost waits in ``<checkpoint>.unacked/`` for the next front end)."""
-        from rclpy.duration import Duration
-        deadline = time.monotonic() + timeout_s
-        for part, pub in self.pub_kf.items():
-            left = max(0.0, deadline - time.monotonic())
-            try:
-                if not pub.wait_for_all_acked(Duration(nanoseconds=int(left * 1e9))):
-                    self.get_logger().warning(f"not every subscriber of {pub.topic_name} confirmed the last "
-                                              f"keyframes within {timeout_s:g} s")
-                    return
-            except Exception as e:  # noqa: BLE001 - best effort while stopping
-                self.get_logger().debug(f"wait_for_all_acked: {e}")
-                return
+        topic = wait_all_acked(self.pub_kf.values(), timeout_s)
+        if topic is not None:
+            self.get_logger().warning(f"not every subscriber of {topic} confirmed the last keyframes "
+                                      f"within {timeout_s:g} s")
 
     def close(self) -> None:
         with self._unacked_lock:

@@ -142,6 +142,23 @@ def publisher_ids(node: Any, topic: str) -> set[tuple]:
         return set()
 
 
+def wait_all_acked(publishers: Iterable[Any], timeout_s: float) -> Optional[str]:
+    """Wait (at most ``timeout_s`` for all together) until every reliable reader of each of
+    ``publishers`` confirmed what was published: a writer that goes away drops what its readers
+    had not fetched. Returns the topic of the first publisher not confirmed in time (or whose
+    wait failed, e.g. while shutting down), None when all were."""
+    from rclpy.duration import Duration         # lazy: no rclpy import at module load
+    deadline = time.monotonic() + timeout_s
+    for pub in publishers:
+        left = max(0.0, deadline - time.monotonic())
+        try:
+            if not pub.wait_for_all_acked(Duration(nanoseconds=int(left * 1e9))):
+                return pub.topic_name
+        except Exception:  # noqa: BLE001 - best effort while stopping
+            return pub.topic_name
+    return None
+
+
 def spin_in_background(node: Any, period_s: float = 0.02) -> Callable[[], None]:
     """Spin ``node`` in a daemon thread with its own ``SingleThreadedExecutor`` (probes, tools and
     benchmarks that wait in their main thread); returns the function that stops it."""

@@ -244,19 +244,14 @@ class Replayer:
         if ctx is None:
             return
         try:
-            from rclpy.duration import Duration
             if ctx.ok():
-                deadline = time.monotonic() + FLUSH_TIMEOUT_S
-                for p in (self.pub_info, self.pub_imu, self.pub_image, self.pub_clock):
-                    if p is None:
-                        continue
-                    # let reliable readers fetch what is still in flight before the writer goes
-                    left = max(0.0, deadline - time.monotonic())
-                    if not p.wait_for_all_acked(Duration(nanoseconds=int(left * 1e9))):
-                        log.warning("replay: not every subscriber of %s confirmed the last "
-                                    "messages within %.0f s", p.topic_name, FLUSH_TIMEOUT_S)
-        except Exception as e:  # pragma: no cover - best effort on shutdown
-            log.debug("wait_for_all_acked failed: %s", e)
+                # let reliable readers fetch what is still in flight before the writers go
+                from .node_common import wait_all_acked
+                pubs = [p for p in (self.pub_info, self.pub_imu, self.pub_image, self.pub_clock) if p is not None]
+                topic = wait_all_acked(pubs, FLUSH_TIMEOUT_S)
+                if topic is not None:
+                    log.warning("replay: not every subscriber of %s confirmed the last messages within "
+                                "%.0f s", topic, FLUSH_TIMEOUT_S)
         finally:
             try:    # a set-up that failed half-way has no executor or node
                 if getattr(self, "executor", None) is not None:
